@@ -1,0 +1,44 @@
+"""Pinhole cameras in the OpenCV/COLMAP convention (x right, y down, z forward)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Camera:
+    """One undistorted pinhole view.
+
+    `viewmat` maps world to camera coordinates (4x4, COLMAP's world-to-camera pose);
+    `K` is the 3x3 intrinsic matrix in pixels for an image of `width` x `height`.
+    """
+
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+    name: str = ""
+
+    @property
+    def center(self) -> Tensor:
+        """Camera centre in world coordinates."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+    def to(self, device: torch.device | str) -> Camera:
+        return Camera(self.viewmat.to(device), self.K.to(device), self.width, self.height, self.name)
+
+    def ray_norms(self) -> Tensor:
+        """|K^-1 (u, v, 1)| per pixel centre, [H, W]: converts a z-depth to a distance along the ray."""
+        device, dtype = self.K.device, self.K.dtype
+        v, u = torch.meshgrid(
+            torch.arange(self.height, device=device, dtype=dtype) + 0.5,
+            torch.arange(self.width, device=device, dtype=dtype) + 0.5,
+            indexing="ij",
+        )
+        x = (u - self.K[0, 2]) / self.K[0, 0]
+        y = (v - self.K[1, 2]) / self.K[1, 1]
+        return torch.sqrt(x * x + y * y + 1.0)

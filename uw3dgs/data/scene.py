@@ -1,0 +1,40 @@
+"""A loaded scene: images, cameras and initial points, whatever the on-disk layout was."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from torch import Tensor
+
+from uw3dgs.cameras import Camera
+
+
+@dataclass
+class GroundTruth:
+    """What only a synthetic scene knows: clean radiance, true ranges and the true medium."""
+
+    clean_images: Tensor
+    """[N, H, W, 3] water-free radiance in [0, 1]."""
+    ranges: Tensor
+    """[N, H, W] distance along each pixel's ray to the surface; inf where the ray sees open water."""
+    medium: dict = field(default_factory=dict)
+    """Contents of gt/medium.json (beta_D, beta_B, B_inf per channel, units)."""
+
+
+@dataclass
+class SceneData:
+    """All views of one scene in memory, in one world frame (OpenCV camera convention)."""
+
+    name: str
+    image_names: list[str]
+    images: Tensor
+    """[N, H, W, 3] float32 in [0, 1], rows follow `image_names` (sorted)."""
+    cameras: list[Camera]
+    points: Tensor
+    """[P, 3] initial points (SfM or synthetic) in world units."""
+    point_colors: Tensor
+    """[P, 3] their colours in [0, 1]."""
+    near: float
+    far: float
+    """Depth bounds of the scene along the rays, in world units."""
+    gt: GroundTruth | None = None

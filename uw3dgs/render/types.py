@@ -1,0 +1,52 @@
+"""Inputs and outputs shared by every rasterizer backend."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """Numerical choices of 3DGS rasterization; every backend honours all of them."""
+
+    tile_size: int = 16
+    """Side of the square screen tiles Gaussians are binned into, in pixels."""
+    near_plane: float = 0.01
+    """Gaussians whose centre is closer than this (camera z) are culled."""
+    far_plane: float = 1e10
+    """Gaussians whose centre is farther than this (camera z) are culled."""
+    eps2d: float = 0.3
+    """Screen-space low-pass filter added to the 2D covariance diagonal (pixels^2), as in 3DGS."""
+    alpha_min: float = 1.0 / 255.0
+    """Contributions with alpha below this are skipped."""
+    alpha_max: float = 0.99
+    """Alpha is clamped to this so transmittance never reaches zero."""
+    transmittance_min: float = 1e-4
+    """Early ray termination: a Gaussian that would bring T below this is not blended, nor any after it."""
+    backend: str = "auto"
+    """Rasterizer backend: 'auto' picks the fastest available for the tensors' device."""
+
+
+@dataclass
+class RasterOutput:
+    """What one view's rasterization returns.
+
+    Per pixel (H x W): `render` = sum_i w_i f_i, `alpha` = sum_i w_i, `depth` = sum_i w_i z_i with
+    w_i = alpha_i T_i the blending weights and z_i the camera-space z of Gaussian i's centre
+    (divide by `alpha` for the expected depth). Per Gaussian (N): `means2d` is the projected centre in
+    pixels and is part of the autograd graph (call `retain_grad()` before backward for the
+    screen-space gradient used by densification); `radii` is the screen radius in pixels (0 = culled);
+    `depths` the camera-space z; `weight_sum` the sum of the Gaussian's blending weights over the
+    view's pixels and `pixel_count` the number of pixels it was blended into (both without gradient).
+    """
+
+    render: Tensor
+    alpha: Tensor
+    depth: Tensor
+    means2d: Tensor
+    radii: Tensor
+    depths: Tensor
+    weight_sum: Tensor
+    pixel_count: Tensor
