@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
@@ -38,3 +39,14 @@ class SceneData:
     far: float
     """Depth bounds of the scene along the rays, in world units."""
     gt: GroundTruth | None = None
+
+
+def scene_extent(cameras: list[Camera]) -> float:
+    """3DGS's 'cameras extent': 1.1 x the largest distance of a camera centre from their mean.
+
+    Position learning rates and size thresholds are relative to it, so a scene in millimetres trains
+    like one in metres.
+    """
+    centers = torch.stack([c.center for c in cameras]).double()
+    radius = (centers - centers.mean(dim=0)).norm(dim=-1).max().item()
+    return 1.1 * max(radius, 1e-6)

@@ -1,0 +1,657 @@
+"""The built-in synthetic underwater scene: a procedural seabed seen through water with a known medium.
+
+No real dataset gives the clean radiance, the true ranges and the true medium; this scene does, so URI
+quality, depth error and medium recovery can be measured. It is written in the SeaThru-NeRF layout
+(`Images_wb/`, `sparse/0/`, `poses_bounds.npy`) plus `gt/`, so one reader serves real and synthetic data.
+
+World frame: metres, z up, mean seabed at z = 0. Cameras follow OpenCV/COLMAP (x right, y down,
+z forward). Every depth here is a range: the distance along the pixel's ray from the camera centre.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pycolmap
+from PIL import Image
+from rich.progress import Progress
+
+GENERATOR_VERSION = 1
+"""Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""
+
+RGB = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SyntheticSceneConfig:
+    """Everything that defines a synthetic scene; the same config always gives the same bytes."""
+
+    seed: int = 0
+    """Seed of every random choice (terrain, texture, poses, points)."""
+    num_views: int = 32
+    """Number of cameras (images)."""
+    width: int = 128
+    """Image width in pixels."""
+    height: int = 96
+    """Image height in pixels."""
+    fov_deg: float = 60.0
+    """Horizontal field of view in degrees (pinhole, square pixels, principal point at the centre)."""
+    path: Literal["forward", "lawnmower"] = "forward"
+    """Camera path: a gently swaying forward pass (like SeaThru-NeRF captures) or a lawnmower survey."""
+    altitude: float = 3.0
+    """Camera height above the mean seabed, in metres."""
+    tilt_deg: float = 35.0
+    """Angle of the optical axis from straight down (0 = nadir); above ~50 the image top sees open water."""
+    path_length: float = 6.0
+    """Length of the forward pass, or of each lawnmower line, in metres."""
+    lawnmower_lines: int = 3
+    """Number of parallel lines of the lawnmower path (alternating direction)."""
+    line_spacing: float = 1.5
+    """Distance between lawnmower lines, in metres."""
+    pose_jitter: float = 0.05
+    """Standard deviation of random camera position perturbations, in metres (a real diver wobbles)."""
+    angle_jitter_deg: float = 2.0
+    """Standard deviation of random yaw, tilt and roll perturbations, in degrees."""
+    terrain_size: float = 24.0
+    """Side of the square seabed centred on the origin, in metres; rays leaving it see open water."""
+    terrain_resolution: float = 0.02
+    """Grid spacing of the height field and texture, in metres (finest texture detail is 2-3 cells)."""
+    relief: float = 0.25
+    """Standard deviation of the large-scale seabed height (dunes, hollows), in metres."""
+    num_rocks: int = 8
+    """Number of boulders placed in the area the cameras look at."""
+    ripple_amplitude: float = 0.025
+    """Amplitude of sand ripples, in metres."""
+    ripple_wavelength: float = 0.3
+    """Wavelength of sand ripples, in metres."""
+    num_specks: int = 400
+    """Small colourful objects (shells, starfish, sponges) scattered over the viewed area."""
+    sun_elevation_deg: float = 60.0
+    """Elevation of the directional light above the horizon, in degrees."""
+    sun_azimuth_deg: float = 30.0
+    """Azimuth of the directional light, counter-clockwise from +x, in degrees."""
+    ambient: float = 0.35
+    """Share of ambient light in the baked Lambertian shading (the rest comes from the sun)."""
+    supersample: int = 2
+    """Rays per pixel along each axis (2 = 2x2) averaged for the clean radiance, against aliasing."""
+    march_steps: int = 64
+    """Ray-marching samples per ray between the top and bottom of the terrain, before bisection."""
+    beta_D: RGB = (0.40, 0.20, 0.12)
+    """Direct-signal attenuation coefficients (R, G, B) per metre; red attenuates most."""
+    beta_B: RGB = (0.30, 0.25, 0.20)
+    """Backscatter coefficients (R, G, B) per metre."""
+    B_inf: RGB = (0.05, 0.25, 0.35)
+    """Veiling light (backscatter at infinite range), RGB in [0, 1]."""
+    medium_strength: float = 1.0
+    """Multiplier on both beta_D and beta_B (0 = clear water)."""
+    num_points: int = 4000
+    """Number of SfM-like initial points written to points3D.bin (outliers included)."""
+    point_noise: float = 0.01
+    """Standard deviation of the points' position noise, as a fraction of the median range of all pixels."""
+    outlier_fraction: float = 0.05
+    """Share of points that are outliers scattered in the camera frusta between the near and far range."""
+
+    def __post_init__(self) -> None:
+        """Reject settings the generator cannot honour, naming the knob (they usually come from flags)."""
+        for name in ("num_views", "width", "height", "supersample", "lawnmower_lines", "terrain_size",
+                     "terrain_resolution", "ripple_wavelength"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.march_steps < 2:
+            raise ValueError(f"march_steps must be at least 2, got {self.march_steps}")
+        if not 0 < self.fov_deg < 180:
+            raise ValueError(f"fov_deg must be between 0 and 180, got {self.fov_deg}")
+        if not 0 <= self.outlier_fraction <= 1:
+            raise ValueError(f"outlier_fraction must be in [0, 1], got {self.outlier_fraction}")
+
+
+def cache_key(config: SyntheticSceneConfig) -> str:
+    """A short stable hash of the config and the generator version, to name a cache folder."""
+    payload = json.dumps({"version": GENERATOR_VERSION, "config": asdict(config)}, sort_keys=True)
+    return hashlib.sha256(payload.encode()).hexdigest()[:12]
+
+
+# ----------------------------------------------------------------------------------------------------
+# Procedural terrain
+
+
+def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - lo) / (hi - lo), 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
+def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return a + (b - a) * t
+
+
+class _Noise:
+    """Value noise on the terrain grid: random lattices interpolated separably (fast for a regular grid)."""
+
+    def __init__(self, coords: np.ndarray, rng: np.random.Generator):
+        self.coords = coords - coords[0]
+        self.rng = rng
+
+    def _layer(self, wavelength: float) -> np.ndarray:
+        f = self.coords / wavelength + self.rng.uniform(0.0, 1.0, 2)[:, None]
+        cells = np.floor(f).astype(np.int64)
+        w = f - cells
+        w = w * w * w * (w * (w * 6.0 - 15.0) + 10.0)  # quintic fade: smooth first and second derivatives
+        lattice = self.rng.uniform(-1.0, 1.0, (cells[1].max() + 2, cells[0].max() + 2))
+        (ix, iy), wx, wy = cells, w[0], w[1][:, None]
+        rows = lattice[:, ix] * (1.0 - wx) + lattice[:, ix + 1] * wx  # interpolate along x, then y
+        return rows[iy] * (1.0 - wy) + rows[iy + 1] * wy
+
+    def fbm(self, wavelength: float, octaves: int) -> np.ndarray:
+        """Fractal noise (octaves halve the wavelength and the amplitude), standardised to mean 0, std 1."""
+        total = sum(0.5**o * self._layer(wavelength / 2**o) for o in range(octaves))
+        return ((total - total.mean()) / total.std()).astype(np.float32)  # float32 halves the memory
+
+
+@dataclass
+class Terrain:
+    """The seabed as a regular grid: heights for ray casting and baked shaded radiance for colour."""
+
+    x0: float
+    resolution: float
+    heights: np.ndarray
+    """[n, n] heights in metres; row i is y = x0 + i * resolution, column j is x = x0 + j * resolution."""
+    radiance: np.ndarray
+    """[n, n, 3] clean radiance (albedo times Lambertian shading) in [0, 1]."""
+
+    @property
+    def extent(self) -> tuple[float, float]:
+        return self.x0, self.x0 + (self.heights.shape[0] - 1) * self.resolution
+
+    def _cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Flat index of the grid cell holding each point (clamped to the grid) and the weights in it."""
+        n = self.heights.shape[0]
+        fx = np.clip((x - self.x0) / self.resolution, 0.0, n - 1.0)
+        fy = np.clip((y - self.x0) / self.resolution, 0.0, n - 1.0)
+        j = np.minimum(fx.astype(np.int64), n - 2)
+        i = np.minimum(fy.astype(np.int64), n - 2)
+        return i * n + j, fx - j, fy - i
+
+    def _bilinear(self, flat: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        n = self.heights.shape[0]
+        idx, wx, wy = self._cell(x, y)
+        if flat.ndim == 2:
+            wx, wy = wx[..., None], wy[..., None]
+        bottom = flat[idx] * (1.0 - wx) + flat[idx + 1] * wx
+        top = flat[idx + n] * (1.0 - wx) + flat[idx + n + 1] * wx
+        return bottom * (1.0 - wy) + top * wy
+
+    def height_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self._bilinear(self.heights.reshape(-1), x, y)
+
+    def radiance_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return self._bilinear(self.radiance.reshape(-1, 3), x, y)
+
+    def cast(self, origin: np.ndarray, dirs: np.ndarray, steps: int, chunk: int = 16384) -> np.ndarray:
+        """Range to the first seabed hit of each unit ray [P, 3] from `origin`; inf for open water."""
+        out = np.full(len(dirs), np.inf)
+        for start in range(0, len(dirs), chunk):
+            out[start : start + chunk] = self._cast_chunk(origin, dirs[start : start + chunk], steps)
+        return out
+
+    def _segment(self, origin: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each ray can meet the seabed: between the planes of the highest and lowest point,
+        and inside the terrain square."""
+        h = self.heights
+        lo, hi = self.extent
+        down = dirs[:, 2] < -1e-12
+        dz = np.where(down, -dirs[:, 2], 1.0)
+        t0 = np.where(down, np.maximum((origin[2] - h.max()) / dz, 0.0), np.inf)
+        t1 = np.where(down, (origin[2] - h.min()) / dz, -np.inf)
+        for axis in (0, 1):
+            d = dirs[:, axis]
+            safe = np.where(d == 0.0, 1.0, d)
+            bound = np.where(d > 0, hi, lo)
+            t1 = np.minimum(t1, np.where(d == 0.0, np.inf, (bound - origin[axis]) / safe))
+        return t0, t1
+
+    def _cast_chunk(self, origin: np.ndarray, dirs: np.ndarray, steps: int) -> np.ndarray:
+        t0, t1 = self._segment(origin, dirs)
+        out = np.full(len(dirs), np.inf)
+        rays = np.nonzero(t1 > t0)[0]
+        d, t0, t1 = dirs[rays], t0[rays], t1[rays]
+
+        def above(t: np.ndarray, d: np.ndarray) -> np.ndarray:
+            """Height of the ray point above the seabed (<= 0 once the ray has hit)."""
+            x, y = origin[0] + d[..., 0] * t, origin[1] + d[..., 1] * t
+            return origin[2] + d[..., 2] * t - self.height_at(x, y)
+
+        # March uniformly, find the first sample below the surface, then bisect its bracket.
+        ts = t0[:, None] + (t1 - t0)[:, None] * np.linspace(0.0, 1.0, steps)
+        below = above(ts, d[:, None, :]) <= 0.0
+        hit = below.any(axis=1)
+        first = below.argmax(axis=1)[hit]
+        rows = np.nonzero(hit)[0]
+        lo_t, hi_t = ts[rows, np.maximum(first - 1, 0)], ts[rows, first]
+        d = d[rows]
+        for _ in range(16):
+            mid = 0.5 * (lo_t + hi_t)
+            inside = above(mid, d) <= 0.0
+            hi_t = np.where(inside, mid, hi_t)
+            lo_t = np.where(inside, lo_t, mid)
+        out[rays[rows]] = 0.5 * (lo_t + hi_t)
+        return out
+
+
+# Albedo palettes (RGB); the texture is computed in float32 to keep the 1200 x 1200 x 3 grids light.
+_SAND = np.array([[0.82, 0.75, 0.60], [0.60, 0.53, 0.42]], dtype=np.float32)
+_ALGAE = np.array([[0.18, 0.42, 0.14], [0.42, 0.36, 0.12]], dtype=np.float32)
+_ROCKS = np.array([[0.45, 0.43, 0.41], [0.52, 0.46, 0.38], [0.36, 0.35, 0.34], [0.58, 0.52, 0.46]],
+                  dtype=np.float32)
+_ENCRUSTING = np.array([[0.55, 0.28, 0.62], [0.88, 0.36, 0.48], [0.95, 0.55, 0.20]], dtype=np.float32)
+_SPECKS = np.array(
+    [[0.85, 0.22, 0.18], [0.95, 0.55, 0.20], [0.95, 0.85, 0.30], [0.93, 0.92, 0.88], [0.55, 0.28, 0.62]],
+    dtype=np.float32,
+)
+
+
+def _window(coords: np.ndarray, cx: float, cy: float, radius: float) -> tuple[slice, slice]:
+    """Grid slices (rows, columns) covering a square of half-side `radius` around (cx, cy)."""
+    res = coords[1] - coords[0]
+    j0, j1 = np.searchsorted(coords, [cx - radius, cx + radius + res])
+    i0, i1 = np.searchsorted(coords, [cy - radius, cy + radius + res])
+    return slice(i0, i1), slice(j0, j1)
+
+
+def _rocks(
+    cfg: SyntheticSceneConfig, coords: np.ndarray, noise: _Noise, focus: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Lumpy half-buried boulders inside `focus` (x_lo, x_hi, y_lo, y_hi): heights and colours."""
+    n = len(coords)
+    heights = np.zeros((n, n), dtype=np.float32)
+    colours = np.zeros((n, n, 3), dtype=np.float32)
+    lumps = 1.0 + 0.25 * np.clip(noise.fbm(0.6, 2), -2.0, 2.0)  # irregular outlines, no islands
+    bumps = 1.0 + 0.08 * noise.fbm(0.1, 2)  # surface roughness
+    for _ in range(cfg.num_rocks):
+        cx, cy = rng.uniform(focus[0], focus[1]), rng.uniform(focus[2], focus[3])
+        rx, ry = rng.uniform(0.35, 0.9, 2)
+        angle = rng.uniform(0.0, np.pi)
+        top = rng.uniform(0.5, 0.9) * min(rx, ry)
+        colour = _ROCKS[rng.integers(len(_ROCKS))] * rng.uniform(0.9, 1.1, 3)
+        rows, cols = _window(coords, cx, cy, 2.0 * max(rx, ry))
+        x, y = coords[cols][None, :] - cx, coords[rows][:, None] - cy
+        u, v = x * np.cos(angle) + y * np.sin(angle), -x * np.sin(angle) + y * np.cos(angle)
+        s2 = ((u / rx) ** 2 + (v / ry) ** 2) * lumps[rows, cols]
+        dome = top * np.clip(1.0 - s2, 0.0, 1.0) ** 0.6 * bumps[rows, cols]
+        higher = dome > heights[rows, cols]
+        heights[rows, cols] = np.where(higher, dome, heights[rows, cols])
+        colours[rows, cols] = np.where(higher[..., None], colour, colours[rows, cols])
+    return heights, colours
+
+
+def _specks(
+    cfg: SyntheticSceneConfig,
+    coords: np.ndarray,
+    albedo: np.ndarray,
+    focus: np.ndarray,
+    rng: np.random.Generator,
+) -> None:
+    """Paint small bright discs (shells, starfish, sponges) into `albedo`, antialiased on the grid."""
+    res = coords[1] - coords[0]
+    for _ in range(cfg.num_specks):
+        cx, cy = rng.uniform(focus[0] - 2.0, focus[1] + 2.0), rng.uniform(focus[2] - 2.0, focus[3] + 2.0)
+        radius = rng.uniform(0.03, 0.08)
+        colour = _SPECKS[rng.integers(len(_SPECKS))] * rng.uniform(0.85, 1.0)
+        rows, cols = _window(coords, cx, cy, radius + res)
+        dist = np.hypot(coords[cols][None, :] - cx, coords[rows][:, None] - cy)
+        cover = np.clip((radius - dist) / res + 0.5, 0.0, 1.0)[..., None]
+        albedo[rows, cols] = _lerp(albedo[rows, cols], colour, cover)
+
+
+def _albedo(
+    cfg: SyntheticSceneConfig,
+    coords: np.ndarray,
+    noise: _Noise,
+    algae: np.ndarray,
+    rock: np.ndarray,
+    rock_colours: np.ndarray,
+    focus: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Sand with grain, ragged algae patches, specks, and mottled rocks with colourful encrusting life."""
+    sand_mix = _smoothstep(-1.5, 1.5, noise.fbm(1.2, 3))[..., None]
+    sand = _lerp(*_SAND, sand_mix) * (1.0 + 0.12 * noise.fbm(0.06, 2))[..., None]
+    algae_tone = _smoothstep(-1.0, 1.0, noise.fbm(0.7, 3))[..., None]
+    algae_colour = _lerp(*_ALGAE, algae_tone) * (0.8 + 0.2 * np.tanh(noise.fbm(0.08, 2)))[..., None]
+    ragged = algae * _smoothstep(-1.2, 0.2, noise.fbm(0.1, 2))
+    albedo = _lerp(sand, algae_colour, ragged[..., None])
+    _specks(cfg, coords, albedo, focus, rng)
+    hue = _smoothstep(-0.6, 0.6, noise.fbm(0.5, 2))[..., None]
+    encrusting = np.where(hue < 0.5, _lerp(_ENCRUSTING[0], _ENCRUSTING[1], 2 * hue),
+                          _lerp(_ENCRUSTING[1], _ENCRUSTING[2], 2 * hue - 1))
+    crust = _smoothstep(0.4, 1.2, noise.fbm(0.3, 3))[..., None]
+    rock_albedo = _lerp(rock_colours * (1.0 + 0.15 * noise.fbm(0.1, 2))[..., None], encrusting, crust)
+    return np.clip(_lerp(albedo, rock_albedo, rock[..., None]), 0.0, 1.0)
+
+
+def _shading(cfg: SyntheticSceneConfig, heights: np.ndarray) -> np.ndarray:
+    """Lambertian shading from a directional sun plus ambient light, baked per grid cell."""
+    dh_dy, dh_dx = np.gradient(heights, cfg.terrain_resolution)
+    normals = np.stack([-dh_dx, -dh_dy, np.ones_like(heights)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    el, az = np.radians(cfg.sun_elevation_deg), np.radians(cfg.sun_azimuth_deg)
+    sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    return cfg.ambient + (1.0 - cfg.ambient) * np.clip(normals @ sun, 0.0, None)
+
+
+def build_terrain(cfg: SyntheticSceneConfig, focus: np.ndarray, rng: np.random.Generator) -> Terrain:
+    """Height field (dunes + boulders + ripples) and its baked clean radiance; rocks and specks go in
+    `focus` (x_lo, x_hi, y_lo, y_hi), the area the cameras look at."""
+    n = int(round(cfg.terrain_size / cfg.terrain_resolution)) + 1
+    coords = -0.5 * cfg.terrain_size + np.arange(n) * cfg.terrain_resolution
+    noise = _Noise(coords, rng)
+    base = cfg.relief * noise.fbm(6.0, 4)
+    algae = _smoothstep(0.4, 1.0, noise.fbm(2.5, 4))
+    rock_heights, rock_colours = _rocks(cfg, coords, noise, focus, rng)
+    rock = np.clip(rock_heights / 0.02, 0.0, 1.0)
+    # Ripples: crests across a fixed direction, bent by low-frequency noise, flattened by algae and rocks.
+    phase = 2 * np.pi * (coords[None, :] * 0.8 + coords[:, None] * 0.6) / cfg.ripple_wavelength
+    ripples = cfg.ripple_amplitude * np.sin(phase + 2.5 * noise.fbm(1.5, 2))
+    heights = base + rock_heights + ripples * (1.0 - 0.7 * algae) * (1.0 - rock)
+    albedo = _albedo(cfg, coords, noise, algae, rock, rock_colours, focus, rng)
+    radiance = np.clip(albedo * _shading(cfg, heights)[..., None], 0.0, 1.0)
+    return Terrain(float(coords[0]), cfg.terrain_resolution, heights, radiance.astype(np.float32))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Cameras
+
+
+def intrinsics(cfg: SyntheticSceneConfig) -> np.ndarray:
+    """3x3 K with square pixels and the principal point at the image centre (COLMAP pixel convention:
+    the centre of the top-left pixel is (0.5, 0.5))."""
+    f = 0.5 * cfg.width / np.tan(0.5 * np.radians(cfg.fov_deg))
+    return np.array([[f, 0.0, 0.5 * cfg.width], [0.0, f, 0.5 * cfg.height], [0.0, 0.0, 1.0]])
+
+
+def _look_rotation(heading: float, tilt: float, roll: float) -> np.ndarray:
+    """Camera-to-world rotation (columns: camera x right, y down, z forward) for a camera facing
+    `heading` (radians from +x, counter-clockwise), its axis `tilt` radians from straight down."""
+    h = np.array([np.cos(heading), np.sin(heading), 0.0])
+    z = np.sin(tilt) * h + np.cos(tilt) * np.array([0.0, 0.0, -1.0])
+    x = np.array([np.sin(heading), -np.cos(heading), 0.0])  # h x up: right of the heading
+    y = np.cross(z, x)
+    x, y = np.cos(roll) * x + np.sin(roll) * y, -np.sin(roll) * x + np.cos(roll) * y
+    return np.stack([x, y, z], axis=1)
+
+
+def _path(cfg: SyntheticSceneConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal camera centres [N, 3] and headings [N] of the chosen path, centred on the origin."""
+    n, half = cfg.num_views, 0.5 * cfg.path_length
+    if cfg.path == "forward":
+        s = np.linspace(-half, half, n)
+        sway = 0.3 * np.sin(2 * np.pi * s / cfg.path_length)
+        slope = 0.3 * 2 * np.pi / cfg.path_length * np.cos(2 * np.pi * s / cfg.path_length)
+        return np.stack([sway, s, np.full(n, cfg.altitude)], axis=1), np.arctan2(1.0, slope)
+    centres, headings = [], []
+    for line, idx in enumerate(np.array_split(np.arange(n), cfg.lawnmower_lines)):
+        s = np.linspace(-half, half, len(idx)) * (1 if line % 2 == 0 else -1)
+        y = (line - 0.5 * (cfg.lawnmower_lines - 1)) * cfg.line_spacing
+        centres.append(np.stack([s, np.full(len(idx), y), np.full(len(idx), cfg.altitude)], axis=1))
+        headings.append(np.full(len(idx), 0.0 if line % 2 == 0 else np.pi))
+    return np.concatenate(centres), np.concatenate(headings)
+
+
+def camera_poses(cfg: SyntheticSceneConfig, rng: np.random.Generator) -> np.ndarray:
+    """Camera-to-world matrices [N, 4, 4] (OpenCV axes) along the path, with random jitter."""
+    centres, headings = _path(cfg)
+    n = len(centres)
+    centres = centres + rng.normal(0.0, cfg.pose_jitter, (n, 3))
+    jitter = np.radians(cfg.angle_jitter_deg) * rng.normal(size=(n, 3))
+    c2w = np.tile(np.eye(4), (n, 1, 1))
+    for k in range(n):
+        tilt = np.radians(cfg.tilt_deg) + jitter[k, 1]
+        c2w[k, :3, :3] = _look_rotation(headings[k] + jitter[k, 0], tilt, jitter[k, 2])
+        c2w[k, :3, 3] = centres[k]
+    return c2w
+
+
+def _focus_area(c2w: np.ndarray, margin: float = 2.0) -> np.ndarray:
+    """(x_lo, x_hi, y_lo, y_hi) around where the optical axes meet the mean seabed: rocks go there."""
+    axes, centres = c2w[:, :3, 2], c2w[:, :3, 3]
+    reach = centres[:, 2] / np.maximum(-axes[:, 2], 0.2)  # horizontal-ish axes: stop a few altitudes out
+    ground = centres + axes * reach[:, None]
+    return np.array(
+        [ground[:, 0].min() - margin, ground[:, 0].max() + margin,
+         ground[:, 1].min() - margin, ground[:, 1].max() + margin]
+    )
+
+
+def _check_cameras(terrain: Terrain, c2w: np.ndarray) -> None:
+    """Every camera must float inside the terrain square, clear of the seabed."""
+    lo, hi = terrain.extent
+    centres = c2w[:, :3, 3]
+    inside = (centres[:, :2] > lo).all(axis=1) & (centres[:, :2] < hi).all(axis=1)
+    if not inside.all():
+        raise ValueError(
+            f"camera {int(np.argmin(inside))} lies outside the {hi - lo:.1f} m terrain square: "
+            "increase terrain_size or shorten the path"
+        )
+    clearance = centres[:, 2] - terrain.height_at(centres[:, 0], centres[:, 1])
+    if clearance.min() < 0.2:
+        worst = int(np.argmin(clearance))
+        raise ValueError(f"camera {worst} is {clearance[worst]:.2f} m above the seabed: increase altitude")
+
+
+# ----------------------------------------------------------------------------------------------------
+# Rendering
+
+
+@dataclass
+class RenderedView:
+    """One view's ground truth and images."""
+
+    c2w: np.ndarray
+    centre_dirs: np.ndarray
+    """[H, W, 3] unit world directions of the rays through the pixel centres."""
+    ranges: np.ndarray
+    """[H, W] range along the pixel-centre ray (metres), inf for open water."""
+    clean: np.ndarray
+    """[H, W, 3] uint8 clean radiance (0 for open water)."""
+    underwater: np.ndarray
+    """[H, W, 3] uint8 underwater image."""
+
+
+def ray_directions(K: np.ndarray, c2w: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Unit world directions [..., 3] of the rays through image points (u, v) in pixels, where the
+    centre of the top-left pixel is (0.5, 0.5)."""
+    cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    world = cam @ c2w[:3, :3].T
+    return world / np.linalg.norm(world, axis=-1, keepdims=True)
+
+
+def pixel_rays(K: np.ndarray, c2w: np.ndarray, width: int, height: int, offsets: np.ndarray) -> np.ndarray:
+    """Ray directions [S, H, W, 3] through every pixel's corner + offset, offsets [S, 2] in pixels."""
+    v, u = np.meshgrid(np.arange(height, dtype=float), np.arange(width, dtype=float), indexing="ij")
+    return ray_directions(K, c2w, u[None] + offsets[:, 0, None, None], v[None] + offsets[:, 1, None, None])
+
+
+def underwater_image(
+    clean: np.ndarray, ranges: np.ndarray, beta_D: np.ndarray, beta_B: np.ndarray, B_inf: np.ndarray
+) -> np.ndarray:
+    """I = J exp(-beta_D t) + B_inf (1 - exp(-beta_B t)); at t = inf only the veiling light B_inf remains."""
+    t = ranges[..., None]
+    return clean * np.exp(-beta_D * t) + B_inf * (1.0 - np.exp(-beta_B * t))
+
+
+def _to_uint8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def render_view(
+    cfg: SyntheticSceneConfig, terrain: Terrain, K: np.ndarray, c2w: np.ndarray, medium: dict[str, np.ndarray]
+) -> RenderedView:
+    """Ray-cast one view: range at the pixel centre, clean radiance averaged over s x s sub-rays,
+    and the underwater image from the per-pixel formation model (exactly the model the method fits)."""
+    s = cfg.supersample
+    grid = (np.arange(s) + 0.5) / s
+    offsets = np.array([(a, b) for b in grid for a in grid] + [(0.5, 0.5)])
+    dirs = pixel_rays(K, c2w, cfg.width, cfg.height, offsets)
+    origin = c2w[:3, 3]
+    t = terrain.cast(origin, dirs.reshape(-1, 3), cfg.march_steps).reshape(dirs.shape[:-1])
+    hit = np.isfinite(t)
+    points = origin + dirs * np.where(hit, t, 0.0)[..., None]
+    colours = terrain.radiance_at(points[..., 0].ravel(), points[..., 1].ravel()).reshape(dirs.shape)
+    colours *= hit[..., None]
+    count = hit[:s * s].sum(axis=0)[..., None]
+    clean = np.where(count > 0, colours[:s * s].sum(axis=0) / np.maximum(count, 1), colours[-1])
+    ranges = t[-1]
+    clean8 = _to_uint8(np.where(np.isfinite(ranges)[..., None], clean, 0.0))
+    # The underwater image uses the stored 8-bit clean image, so gt/ reproduces it to 8-bit rounding.
+    uw = underwater_image(clean8 / 255.0, ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
+    return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw))
+
+
+def medium_parameters(cfg: SyntheticSceneConfig) -> dict[str, np.ndarray]:
+    """The true medium: betas scaled by `medium_strength`, per metre."""
+    return {
+        "beta_D": cfg.medium_strength * np.array(cfg.beta_D),
+        "beta_B": cfg.medium_strength * np.array(cfg.beta_B),
+        "B_inf": np.array(cfg.B_inf),
+    }
+
+
+# ----------------------------------------------------------------------------------------------------
+# SfM-like points
+
+
+def sample_points(
+    cfg: SyntheticSceneConfig, views: list[RenderedView], K: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """What SfM would give: noisy samples of the visible surface coloured by the underwater images,
+    plus outliers scattered in the frusta. Returns xyz [P, 3] float64 and rgb [P, 3] uint8."""
+    ranges = np.stack([v.ranges for v in views])
+    finite = np.isfinite(ranges)
+    scale = float(np.median(ranges[finite]))
+    near, far = float(ranges[finite].min()), float(ranges[finite].max())
+    n_out = int(round(cfg.num_points * cfg.outlier_fraction))
+    candidates = np.flatnonzero(finite)
+    picked = rng.choice(candidates, size=min(cfg.num_points - n_out, len(candidates)), replace=False)
+    k, i, j = np.unravel_index(picked, ranges.shape)
+    centres = np.stack([v.c2w[:3, 3] for v in views])
+    dirs = np.stack([v.centre_dirs for v in views])
+    surface = centres[k] + dirs[k, i, j] * ranges[k, i, j, None]
+    surface += rng.normal(0.0, cfg.point_noise * scale, surface.shape)
+    uw = np.stack([v.underwater for v in views])
+    # Outliers: random depths along random rays of random views, coloured by the pixel they fall in.
+    ko = rng.integers(len(views), size=n_out)
+    u, v = rng.uniform(0.0, cfg.width, n_out), rng.uniform(0.0, cfg.height, n_out)
+    out_dirs = np.stack([ray_directions(K, views[a].c2w, b, c) for a, b, c in zip(ko, u, v, strict=True)])
+    io, jo = v.astype(int), u.astype(int)
+    outliers = centres[ko] + out_dirs * rng.uniform(near, far, (n_out, 1))
+    xyz = np.concatenate([surface, outliers])
+    rgb = np.concatenate([uw[k, i, j], uw[ko, io, jo]])
+    return xyz, rgb
+
+
+# ----------------------------------------------------------------------------------------------------
+# Writing the SeaThru-NeRF layout
+
+
+def _image_names(n: int) -> list[str]:
+    return [f"{k:04d}.png" for k in range(n)]
+
+
+def write_colmap_model(sparse_dir: Path, K: np.ndarray, cfg: SyntheticSceneConfig, c2w: np.ndarray,
+                       xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """cameras.bin (one PINHOLE camera), images.bin (world-to-camera poses), points3D.bin (empty tracks)."""
+    rec = pycolmap.Reconstruction()
+    params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=cfg.width, height=cfg.height, params=params, camera_id=1)
+    )
+    for k, name in enumerate(_image_names(len(c2w))):
+        w2c = np.linalg.inv(c2w[k])
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=1, image_id=k + 1), pose)
+    for p, c in zip(xyz, rgb, strict=True):
+        rec.add_point3D(p, pycolmap.Track(), c)
+    sparse_dir.mkdir(parents=True, exist_ok=True)
+    rec.write_binary(str(sparse_dir))
+    # COLMAP >= 3.12 adds rigs.bin and frames.bin; the dataset ships the classic three files only, and
+    # readers (pycolmap included) rebuild trivial rigs without them.
+    for extra in ("rigs.bin", "frames.bin"):
+        (sparse_dir / extra).unlink(missing_ok=True)
+
+
+def llff_poses_bounds(c2w: np.ndarray, K: np.ndarray, cfg: SyntheticSceneConfig,
+                      z_bounds: np.ndarray) -> np.ndarray:
+    """LLFF rows [N, 17]: the 3x5 matrix [R | t | (h, w, f)] of camera-to-world in LLFF axis order
+    (down, right, back), flattened row-major, then the near and far z-depth bounds."""
+    rows = []
+    hwf = np.array([cfg.height, cfg.width, K[0, 0]], dtype=float)
+    for pose, bounds in zip(c2w, z_bounds, strict=True):
+        r = pose[:3, :3]
+        llff = np.column_stack([r[:, 1], r[:, 0], -r[:, 2], pose[:3, 3], hwf])
+        rows.append(np.concatenate([llff.ravel(), bounds]))
+    return np.stack(rows)
+
+
+def _z_bounds(view: RenderedView, index: int) -> np.ndarray:
+    """Near and far camera z-depth of the visible seabed, as LLFF stores them."""
+    z = view.ranges * (view.centre_dirs @ view.c2w[:3, 2])
+    z = z[np.isfinite(z)]
+    if z.size == 0:
+        raise ValueError(f"view {index} sees no seabed: lower tilt_deg or altitude")
+    return np.array([z.min(), z.max()])
+
+
+def _write_png(path: Path, pixels: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(pixels).save(path)
+
+
+def _write_views(out_dir: Path, views: list[RenderedView]) -> None:
+    for name, view in zip(_image_names(len(views)), views, strict=True):
+        _write_png(out_dir / "Images_wb" / name, view.underwater)
+        _write_png(out_dir / "gt" / "clean" / name, view.clean)
+        range_path = out_dir / "gt" / "range" / Path(name).with_suffix(".npy")
+        range_path.parent.mkdir(parents=True, exist_ok=True)
+        np.save(range_path, view.ranges.astype(np.float32))
+
+
+def _write_medium(path: Path, cfg: SyntheticSceneConfig, medium: dict[str, np.ndarray]) -> None:
+    content = {key: [float(x) for x in value] for key, value in medium.items()}
+    content |= {"units": "per metre (world unit)", "seed": cfg.seed, "generator_version": GENERATOR_VERSION,
+                "config": asdict(cfg)}
+    path.write_text(json.dumps(content, indent=2, sort_keys=True) + "\n")
+
+
+def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool = True) -> Path:
+    """Write the scene to `out_dir` in the SeaThru-NeRF layout plus gt/; returns `out_dir`.
+
+    gt/medium.json is written last: its presence marks a complete scene (useful for caches).
+    """
+    out_dir = Path(out_dir)
+    seeds = np.random.SeedSequence(config.seed).spawn(3)  # independent streams: poses, terrain, points
+    pose_rng, terrain_rng, point_rng = (np.random.default_rng(s) for s in seeds)
+    K = intrinsics(config)
+    medium = medium_parameters(config)
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task("seabed", total=config.num_views + 2)
+        c2w = camera_poses(config, pose_rng)
+        terrain = build_terrain(config, _focus_area(c2w), terrain_rng)
+        _check_cameras(terrain, c2w)
+        bar.update(task, advance=1, description="ray casting")
+        views = []
+        for pose in c2w:
+            views.append(render_view(config, terrain, K, pose, medium))
+            bar.advance(task)
+        bar.update(task, description="writing")
+        xyz, rgb = sample_points(config, views, K, point_rng)
+        _write_views(out_dir, views)
+        write_colmap_model(out_dir / "sparse" / "0", K, config, c2w, xyz, rgb)
+        z_bounds = np.stack([_z_bounds(v, k) for k, v in enumerate(views)])
+        np.save(out_dir / "poses_bounds.npy", llff_poses_bounds(c2w, K, config, z_bounds))
+        _write_medium(out_dir / "gt" / "medium.json", config, medium)
+        bar.advance(task)
+    return out_dir

@@ -1,0 +1,104 @@
+"""The 3D Gaussian scene model: means, scales, rotations, opacities and SH colour coefficients."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.registry import FieldSpec
+from uw3dgs.render.sh import eval_sh, rgb_to_sh
+
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+@dataclass(frozen=True)
+class GaussianFieldConfig(InstantiateConfig):
+    _target: Target = target(lambda: GaussianField)
+    sh_degree: int = 3
+    """Highest spherical-harmonics degree of the view-dependent colour."""
+    sh_degree_interval: int = 1000
+    """Steps between raising the active SH degree by one (3DGS's progressive schedule)."""
+    init_opacity: float = 0.1
+    """Opacity of every initial Gaussian."""
+    init_scale_neighbours: int = 3
+    """Initial scale = mean distance to this many nearest initial points (isotropic)."""
+
+
+def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor:
+    """Mean distance of each point to its k nearest others (chunked brute force: no extra dependency)."""
+    out = torch.empty(len(points), dtype=points.dtype)
+    k = min(k, len(points) - 1)
+    if k < 1:
+        return torch.ones(len(points), dtype=points.dtype)
+    for start in range(0, len(points), chunk):
+        d = torch.cdist(points[start:start + chunk], points)
+        nearest = d.topk(k + 1, largest=False).values[:, 1:]  # drop the point itself
+        out[start:start + chunk] = nearest.mean(dim=1)
+    return out
+
+
+class GaussianField(nn.Module):
+    """N anisotropic Gaussians; parameters are stored unconstrained (log-scale, logit opacity)."""
+
+    def __init__(self, config: GaussianFieldConfig, points: Tensor, colors: Tensor):
+        super().__init__()
+        self.config = config
+        n = len(points)
+        if n == 0:
+            raise ValueError("cannot initialise Gaussians from an empty point cloud")
+        points = points.float()
+        dist = mean_neighbour_distance(points, config.init_scale_neighbours).clamp_min(1e-7)
+        num_rest = (config.sh_degree + 1) ** 2 - 1
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        self.means = nn.Parameter(points.clone())
+        self.scales = nn.Parameter(torch.log(dist)[:, None].repeat(1, 3))
+        self.quats = nn.Parameter(quats)
+        self.opacities = nn.Parameter(torch.logit(torch.full((n,), config.init_opacity)))
+        self.sh0 = nn.Parameter(rgb_to_sh(colors.float().clamp(0, 1))[:, None, :])
+        self.shN = nn.Parameter(torch.zeros(n, num_rest, 3))
+        # a buffer, so checkpoints carry it and a loaded model renders with the degree it trained with
+        self.register_buffer("active_sh_degree", torch.tensor(0))
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.means.shape[0]
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return {name: [getattr(self, name)] for name in PARAM_NAMES}
+
+    def set_step(self, step: int) -> None:
+        self.active_sh_degree.fill_(min(step // self.config.sh_degree_interval, self.config.sh_degree))
+
+    def colors(self, camera_center: Tensor) -> Tensor:
+        """View-dependent RGB of every Gaussian seen from `camera_center`, [N, 3], >= 0."""
+        dirs = torch.nn.functional.normalize(self.means - camera_center, dim=-1)
+        coeffs = torch.cat([self.sh0, self.shN], dim=1)
+        return (eval_sh(int(self.active_sh_degree), coeffs, dirs) + 0.5).clamp_min(0.0)
+
+    def activated(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(means, scales, unit quaternions, opacities) as the rasterizer takes them."""
+        return (self.means, torch.exp(self.scales), torch.nn.functional.normalize(self.quats, dim=-1),
+                torch.sigmoid(self.opacities))
+
+    def set_params(self, values: dict[str, Tensor]) -> dict[str, tuple[nn.Parameter, nn.Parameter]]:
+        """Replace parameters by new tensors (densification); returns name -> (old, new) for the optimizer."""
+        swapped = {}
+        for name, value in values.items():
+            old = getattr(self, name)
+            new = nn.Parameter(value.detach().contiguous(), requires_grad=old.requires_grad)
+            setattr(self, name, new)
+            swapped[name] = (old, new)
+        return swapped
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        """Checkpoints hold however many Gaussians training had reached: resize before loading."""
+        for name in PARAM_NAMES:
+            if prefix + name in state_dict:
+                setattr(self, name, nn.Parameter(torch.empty_like(state_dict[prefix + name])))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+field_spec = FieldSpec("gaussians", "3D Gaussians with SH colour (3DGS)", GaussianFieldConfig())

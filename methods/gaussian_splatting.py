@@ -1,0 +1,121 @@
+"""`3dgs`: plain 3D Gaussian Splatting (Kerbl et al. 2023), the baseline every underwater method is compared to."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import torch
+from torch import Tensor, nn
+from uw3dgs.fields.densification import DensificationConfig, Densifier
+from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
+
+from uw3dgs.cameras import Camera
+from uw3dgs.config import Target, target
+from uw3dgs.data.datamanager import Batch
+from uw3dgs.data.scene import SceneData
+from uw3dgs.engine.callbacks import TrainingCallback
+from uw3dgs.engine.config import TrainConfig
+from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
+from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
+from uw3dgs.models.base import Model, ModelConfig
+from uw3dgs.registry import MethodSpec
+from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.utils.visualize import depth_to_image
+
+
+@dataclass(frozen=True)
+class GaussianSplattingModelConfig(ModelConfig):
+    _target: Target = target(lambda: GaussianSplattingModel)
+    gaussians: GaussianFieldConfig = field(default_factory=GaussianFieldConfig)
+    densification: DensificationConfig = field(default_factory=DensificationConfig)
+    raster: RasterSettings = field(default_factory=RasterSettings)
+    ssim_lambda: float = 0.2
+    """Image loss = (1 - ssim_lambda) L1 + ssim_lambda D-SSIM."""
+    background: Literal["black", "white", "random"] = "black"
+    """Colour behind the Gaussians; 'random' draws one per training step (evaluation uses black)."""
+
+
+class GaussianSplattingModel(Model):
+    config: GaussianSplattingModelConfig
+
+    def __init__(self, config: GaussianSplattingModelConfig, scene: SceneData, train_indices: list[int]):
+        super().__init__(config, scene, train_indices)
+        self.gaussians: GaussianField = config.gaussians.setup(points=scene.points, colors=scene.point_colors)
+
+    @property
+    def num_gaussians(self) -> int:
+        return self.gaussians.num_gaussians
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        return self.gaussians.param_groups()
+
+    def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
+        return [ShDegreeSchedule(self.gaussians),
+                Densifier(self.config.densification, self.gaussians, optimizers, self.scene_extent,
+                          max_num_iterations)]
+
+    def background(self, device: torch.device) -> Tensor:
+        if self.config.background == "random" and self.training:
+            return torch.rand(3, device=device)
+        return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
+
+    def get_outputs(self, camera: Camera) -> dict[str, Any]:
+        means, scales, quats, opacities = self.gaussians.activated()
+        colors = self.gaussians.colors(camera.center)
+        out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
+        if self.training and out.means2d.requires_grad:
+            out.means2d.retain_grad()  # densification reads the screen-space gradient
+        alpha = out.alpha[..., None]
+        rgb = out.render + (1.0 - alpha) * self.background(means.device)
+        depth = out.depth / out.alpha.clamp_min(1e-8)  # expected camera-space z of the covered part
+        return {"rgb": rgb, "alpha": out.alpha, "depth": depth,
+                "range": depth * camera.ray_norms(), "means2d": out.means2d, "radii": out.radii,
+                "raster": out, "image_size": (camera.width, camera.height)}
+
+    def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
+        lam = self.config.ssim_lambda
+        pred, gt = outputs["rgb"], batch["image"]
+        return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt)}
+
+    def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        return {"psnr": float(psnr(outputs["rgb"].detach().clamp(0, 1), batch["image"])),
+                "num_gaussians": float(self.num_gaussians)}
+
+    def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
+        return {"gt": batch["image"], "render": outputs["rgb"].clamp(0, 1),
+                "depth": depth_to_image(outputs["range"], outputs["alpha"])}
+
+
+class ShDegreeSchedule(TrainingCallback):
+    """Raise the active SH degree every `sh_degree_interval` steps."""
+
+    name = "sh_degree"
+
+    def __init__(self, gaussians: GaussianField):
+        self.gaussians = gaussians
+
+    def before_step(self, step: int) -> None:
+        self.gaussians.set_step(step)
+
+
+def gaussian_optimizers(means_lr: float = 1.6e-4, means_lr_final: float = 1.6e-6, opacity_lr: float = 0.05,
+                        scaling_lr: float = 0.005, rotation_lr: float = 0.001,
+                        feature_lr: float = 0.0025) -> dict[str, ParamGroupConfig]:
+    """3DGS's learning rates; position rates are per unit of scene extent and decay over the run."""
+    return {
+        "means": ParamGroupConfig(means_lr, scale_by_scene_extent=True, lr_final=means_lr_final),
+        "scales": ParamGroupConfig(scaling_lr),
+        "quats": ParamGroupConfig(rotation_lr),
+        "opacities": ParamGroupConfig(opacity_lr),
+        "sh0": ParamGroupConfig(feature_lr),
+        "shN": ParamGroupConfig(feature_lr / 20.0),
+    }
+
+
+method = MethodSpec(
+    name="3dgs",
+    description="3D Gaussian Splatting baseline (no water model): L1 + 0.2 D-SSIM, 3DGS density control.",
+    config=TrainConfig(method_name="3dgs", model=GaussianSplattingModelConfig(),
+                       optimizers=gaussian_optimizers()),
+)

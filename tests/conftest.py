@@ -1,0 +1,48 @@
+"""Shared fixtures: a tiny synthetic scene and a fast 3DGS config, so end-to-end tests take seconds."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
+from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
+
+from uw3dgs.engine.config import TrainConfig
+
+torch.set_num_threads(2)
+
+
+@pytest.fixture(scope="session")
+def cache_dir(tmp_path_factory) -> Path:
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_config() -> SyntheticSceneConfig:
+    return SyntheticSceneConfig(width=48, height=36, num_views=12)
+
+
+def tiny_train_config(output_dir: Path, cache_dir: Path, scene: SyntheticSceneConfig, steps: int = 40,
+                      reset_opacity_every: int = 0, **overrides) -> TrainConfig:
+    """3DGS with every schedule shrunk to tens of steps (densify from step 10 every 10)."""
+    base: TrainConfig = gaussian_splatting.config
+    model = base.model
+    model = dataclasses.replace(model, densification=dataclasses.replace(
+        model.densification, refine_start=10, refine_every=10, reset_opacity_every=reset_opacity_every),
+        gaussians=dataclasses.replace(model.gaussians, sh_degree_interval=10))
+    return dataclasses.replace(
+        base, model=model, max_num_iterations=steps, output_dir=output_dir, progress=False, device="cpu",
+        steps_per_save=20, steps_per_eval_image=20, steps_per_eval_all_images=20,
+        datamanager=SyntheticDataManagerConfig(scene=scene, cache_dir=cache_dir), **overrides)
+
+
+@pytest.fixture
+def make_config(tmp_path, cache_dir, tiny_scene_config):
+    def make(steps: int = 40, reset_opacity_every: int = 0, **overrides) -> TrainConfig:
+        return tiny_train_config(tmp_path / "outputs", cache_dir, tiny_scene_config, steps, reset_opacity_every,
+                                 **overrides)
+    return make

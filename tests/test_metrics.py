@@ -1,0 +1,129 @@
+"""Image metrics and losses against hand computations and an independent brute-force SSIM."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import correlate
+
+from uw3dgs.metrics.image import MSE_FLOOR, dssim_loss, l1_loss, psnr, ssim
+
+
+def reference_ssim(pred: np.ndarray, gt: np.ndarray) -> float:
+    """Float64 SSIM of one [H, W, C] pair, written from the definition with an explicit 2D window."""
+    radius, sigma = 5, 1.5
+    window = np.zeros((2 * radius + 1, 2 * radius + 1))
+    for i in range(-radius, radius + 1):
+        for j in range(-radius, radius + 1):
+            window[i + radius, j + radius] = np.exp(-(i * i + j * j) / (2 * sigma**2))
+    window /= window.sum()
+
+    def blur(channel: np.ndarray) -> np.ndarray:
+        return correlate(channel, window, mode="constant", cval=0.0)
+
+    c1, c2 = 0.01**2, 0.03**2
+    maps = []
+    for c in range(pred.shape[-1]):
+        x, y = pred[..., c], gt[..., c]
+        mu_x, mu_y = blur(x), blur(y)
+        var_x = blur(x * x) - mu_x**2
+        var_y = blur(y * y) - mu_y**2
+        cov = blur(x * y) - mu_x * mu_y
+        maps.append(
+            ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+        )
+    return float(np.mean(maps))
+
+
+def random_pair(shape: tuple[int, ...], noise: float, seed: int = 0, dtype=torch.float64):
+    gen = torch.Generator().manual_seed(seed)
+    gt = torch.rand(shape, generator=gen, dtype=dtype)
+    pred = (gt + noise * torch.randn(shape, generator=gen, dtype=dtype)).clamp(0, 1)
+    return pred, gt
+
+
+def test_psnr_matches_hand_computation_per_image():
+    pred, gt = random_pair((3, 7, 9, 3), noise=0.05)
+    expected = [
+        10 * np.log10(1.0 / np.mean((p - g) ** 2)) for p, g in zip(pred.numpy(), gt.numpy(), strict=True)
+    ]
+    values = psnr(pred, gt)
+    assert values.shape == (3,)
+    np.testing.assert_allclose(values.numpy(), expected, rtol=1e-12)
+    assert psnr(pred[1], gt[1]).shape == ()
+    assert psnr(pred[1], gt[1]).item() == pytest.approx(expected[1], rel=1e-12)
+
+
+@pytest.mark.parametrize(("offset", "expected_db"), [(0.1, 20.0), (0.01, 40.0), (0.5, 6.0206)])
+def test_psnr_of_a_constant_offset(offset, expected_db):
+    gt = torch.full((8, 8, 3), 0.25, dtype=torch.float64)
+    assert psnr(gt + offset, gt).item() == pytest.approx(expected_db, abs=1e-4)
+
+
+def test_psnr_of_identical_images_is_finite():
+    img = torch.rand(5, 5, 3)
+    assert psnr(img, img).item() == pytest.approx(-10 * np.log10(MSE_FLOOR))
+
+
+def test_metrics_reject_mismatched_shapes():
+    with pytest.raises(ValueError, match="shapes differ"):
+        psnr(torch.rand(4, 4, 3), torch.rand(4, 5, 3))
+    with pytest.raises(ValueError, match="H, W, C"):
+        ssim(torch.rand(4, 3), torch.rand(4, 3))
+
+
+@pytest.mark.parametrize("shape", [(2, 17, 23, 3), (1, 6, 4, 3), (1, 30, 12, 1)])
+def test_ssim_matches_brute_force_reference(shape):
+    pred, gt = random_pair(shape, noise=0.1, seed=shape[1])
+    values = ssim(pred, gt)
+    expected = [reference_ssim(p, g) for p, g in zip(pred.numpy(), gt.numpy(), strict=True)]
+    np.testing.assert_allclose(values.numpy(), expected, rtol=0, atol=1e-12)
+    # float32, the training dtype, stays close to the float64 reference.
+    values32 = ssim(pred.float(), gt.float())
+    np.testing.assert_allclose(values32.numpy(), expected, rtol=0, atol=2e-5)
+
+
+def test_ssim_unbatched_returns_a_scalar():
+    pred, gt = random_pair((10, 11, 3), noise=0.1)
+    value = ssim(pred, gt)
+    assert value.shape == ()
+    assert value.item() == pytest.approx(reference_ssim(pred.numpy(), gt.numpy()), abs=1e-12)
+
+
+def test_ssim_identity_and_symmetry():
+    pred, gt = random_pair((2, 16, 16, 3), noise=0.1)
+    torch.testing.assert_close(ssim(gt, gt), torch.ones(2, dtype=torch.float64))
+    torch.testing.assert_close(ssim(pred, gt), ssim(gt, pred), rtol=0, atol=1e-14)
+
+
+def test_ssim_decreases_with_noise():
+    values = [ssim(*random_pair((24, 24, 3), noise=s)).item() for s in (0.0, 0.02, 0.05, 0.1, 0.2)]
+    assert values[0] == pytest.approx(1.0)
+    assert all(a > b for a, b in zip(values, values[1:], strict=False))
+
+
+@pytest.fixture
+def single_thread():
+    """gradcheck runs hundreds of tiny forward passes; thread hand-offs would dominate on a busy machine."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def test_ssim_gradient_matches_finite_differences(single_thread):
+    pred, gt = random_pair((1, 6, 7, 3), noise=0.2)
+    pred.requires_grad_(True)
+    gt.requires_grad_(True)
+    assert torch.autograd.gradcheck(ssim, (pred, gt), eps=1e-6, atol=1e-5)
+
+
+def test_losses():
+    pred, gt = random_pair((2, 9, 9, 3), noise=0.1)
+    pred.requires_grad_(True)
+    assert dssim_loss(pred, gt).item() == pytest.approx(1.0 - ssim(pred, gt).mean().item())
+    assert l1_loss(pred, gt).item() == pytest.approx((pred - gt).abs().mean().item())
+    assert dssim_loss(gt, gt).item() == pytest.approx(0.0, abs=1e-12)
+    (dssim_loss(pred, gt) + l1_loss(pred, gt)).backward()
+    assert pred.grad is not None and torch.isfinite(pred.grad).all()

@@ -1,0 +1,360 @@
+"""The torch reference rasterizer against an independent brute-force renderer, plus its helpers."""
+
+from __future__ import annotations
+
+import importlib
+import math
+from dataclasses import dataclass
+
+import pytest
+import torch
+from torch import Tensor
+
+from uw3dgs.cameras import Camera
+from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render.projection import project_gaussians
+from uw3dgs.render.rasterize import BACKENDS, register_backend, select_backend
+from uw3dgs.render.reference import rasterize_reference
+from uw3dgs.render.sh import eval_sh, rgb_to_sh, sh_to_rgb
+
+F64 = torch.float64
+
+
+@dataclass
+class Scene:
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    features: Tensor
+    camera: Camera
+
+    def inputs(self) -> tuple[Tensor, ...]:
+        return self.means, self.quats, self.scales, self.opacities, self.features
+
+
+def _rotation_from_quat(q: Tensor) -> Tensor:
+    """R = (w^2 - |v|^2) I + 2 v v^T + 2 w [v]_x, written independently of the library's version."""
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, v = q[:, :1, None], q[:, 1:]
+    cross = torch.zeros(len(q), 3, 3, dtype=q.dtype)
+    cross[:, 0, 1], cross[:, 0, 2], cross[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    cross = cross - cross.transpose(1, 2)
+    eye = torch.eye(3, dtype=q.dtype)
+    return (w * w - (v * v).sum(-1)[:, None, None]) * eye + 2 * v[:, :, None] * v[:, None, :] + 2 * w * cross
+
+
+def _random_camera(gen: torch.Generator, width: int, height: int) -> Camera:
+    rot, _ = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=F64))
+    rot = rot * torch.sign(torch.det(rot))
+    viewmat = torch.eye(4, dtype=F64)
+    viewmat[:3, :3] = rot
+    viewmat[:3, 3] = torch.randn(3, generator=gen, dtype=F64)
+    f = 0.8 * width
+    K = torch.tensor([[f, 0, 0.5 * width + 1.3], [0, 1.1 * f, 0.5 * height - 0.7], [0, 0, 1]], dtype=F64)
+    return Camera(viewmat=viewmat, K=K, width=width, height=height)
+
+
+def random_scene(seed: int, n: int, width: int = 40, height: int = 30, channels: int = 3) -> Scene:
+    """Gaussians in front of, behind and beside the camera, from sub-pixel to screen-filling."""
+    gen = torch.Generator().manual_seed(seed)
+
+    def uniform(lo: float, hi: float, *shape: int) -> Tensor:
+        return lo + (hi - lo) * torch.rand(*shape, generator=gen, dtype=F64)
+
+    camera = _random_camera(gen, width, height)
+    z = uniform(-1.0, 8.0, n)  # about 1 in 9 behind the camera
+    xy = uniform(-0.9, 0.9, n, 2) * z.abs()[:, None]  # some beyond the field of view
+    p_cam = torch.cat([xy, z[:, None]], dim=1)
+    rot, t = camera.viewmat[:3, :3], camera.viewmat[:3, 3]
+    means = (p_cam - t) @ rot
+    scales = torch.exp(uniform(math.log(3e-3), math.log(0.4), n, 3))
+    scales[: n // 20] = uniform(1.0, 4.0, n // 20, 3)  # huge
+    scales[n // 20 : n // 10] = uniform(1e-5, 1e-3, n // 10 - n // 20, 3)  # tiny
+    opacities = uniform(0.0, 1.0, n)
+    opacities[n // 10 : n // 5] = uniform(0.985, 1.0, n // 5 - n // 10)  # exercise the alpha_max clamp
+    quats = torch.randn(n, 4, generator=gen, dtype=F64) * uniform(0.5, 2.0, n, 1)
+    features = uniform(-1.0, 2.0, n, channels)
+    return Scene(means, quats, scales, opacities, features, camera)
+
+
+@dataclass
+class BruteForce:
+    render: Tensor
+    alpha: Tensor
+    depth: Tensor
+    weight_sum: Tensor
+    pixel_count: Tensor
+    terminated_pixels: int
+
+
+def brute_force(scene: Scene, settings: RasterSettings) -> BruteForce:
+    """3DGS blending evaluated for every pixel and every Gaussian, one Gaussian at a time, globally sorted."""
+    cam = scene.camera
+    fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+    rot, t = cam.viewmat[:3, :3], cam.viewmat[:3, 3]
+    p = scene.means @ rot.T + t
+    x, y, z = p.unbind(-1)
+
+    lim_x, lim_y = 1.3 * cam.width / (2 * fx), 1.3 * cam.height / (2 * fy)
+    tx = torch.clamp(x / z, -lim_x, lim_x) * z
+    ty = torch.clamp(y / z, -lim_y, lim_y) * z
+    J = torch.zeros(len(p), 2, 3, dtype=p.dtype)
+    J[:, 0, 0], J[:, 0, 2] = fx / z, -fx * tx / z**2
+    J[:, 1, 1], J[:, 1, 2] = fy / z, -fy * ty / z**2
+    R = _rotation_from_quat(scene.quats)
+    sigma = R @ torch.diag_embed(scene.scales**2) @ R.transpose(1, 2)
+    cov2d = J @ rot @ sigma @ rot.T @ J.transpose(1, 2) + settings.eps2d * torch.eye(2, dtype=p.dtype)
+    conic = torch.linalg.inv(cov2d)
+    mean2d = torch.stack([fx * x / z + cx, fy * y / z + cy], dim=-1)
+
+    v, u = torch.meshgrid(torch.arange(cam.height), torch.arange(cam.width), indexing="ij")
+    pix = torch.stack([u.flatten(), v.flatten()], dim=-1).to(p.dtype) + 0.5
+    T = torch.ones(len(pix), dtype=p.dtype)
+    done = torch.zeros(len(pix), dtype=torch.bool)
+    render = torch.zeros(len(pix), scene.features.shape[1], dtype=p.dtype)
+    alpha_img = torch.zeros(len(pix), dtype=p.dtype)
+    depth_img = torch.zeros(len(pix), dtype=p.dtype)
+    weight_sum = torch.zeros(len(p), dtype=p.dtype)
+    pixel_count = torch.zeros(len(p), dtype=torch.int64)
+    in_range = (z >= settings.near_plane) & (z <= settings.far_plane)
+    for i in torch.argsort(z.detach(), stable=True).tolist():
+        if not in_range[i]:
+            continue
+        d = pix - mean2d[i]
+        power = -0.5 * (conic[i, 0, 0] * d[:, 0] ** 2 + conic[i, 1, 1] * d[:, 1] ** 2)
+        power = power - conic[i, 0, 1] * d[:, 0] * d[:, 1]
+        alpha = torch.clamp(scene.opacities[i] * torch.exp(power), max=settings.alpha_max)
+        skip = (power > 0) | (alpha < settings.alpha_min) | done
+        t_next = T * (1 - alpha)
+        stop = ~skip & (t_next < settings.transmittance_min)
+        done = done | stop
+        blend = ~skip & ~stop
+        w = torch.where(blend, alpha * T, torch.zeros_like(T))
+        render = render + w[:, None] * scene.features[i]
+        alpha_img = alpha_img + w
+        depth_img = depth_img + w * z[i]
+        weight_sum[i] = w.sum().detach()
+        pixel_count[i] = int(blend.sum())
+        T = torch.where(blend, t_next, T)
+    shape = (cam.height, cam.width)
+    return BruteForce(
+        render=render.reshape(*shape, -1),
+        alpha=alpha_img.reshape(shape),
+        depth=depth_img.reshape(shape),
+        weight_sum=weight_sum,
+        pixel_count=pixel_count,
+        terminated_pixels=int(done.sum()),
+    )
+
+
+@pytest.mark.parametrize("tile_size", [16, 8])
+@pytest.mark.parametrize("seed,n", [(0, 60), (1, 150), (2, 300)])
+def test_reference_matches_brute_force(seed: int, n: int, tile_size: int) -> None:
+    scene = random_scene(seed, n, channels=4 if seed == 1 else 3)
+    settings = RasterSettings(tile_size=tile_size)
+    out = rasterize(*scene.inputs(), scene.camera, settings)
+    ref = brute_force(scene, settings)
+    assert out.render.shape == (30, 40, scene.features.shape[1])
+    assert out.alpha.shape == out.depth.shape == (30, 40)
+    for name in ("render", "alpha", "depth", "weight_sum"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), rtol=0, atol=1e-10, msg=name)
+    assert torch.equal(out.pixel_count.long(), ref.pixel_count)
+    assert ref.alpha.max() > 0.9 and ref.pixel_count.sum() > 0
+
+
+def test_brute_force_scenes_cover_the_edge_cases() -> None:
+    """The scenes above do hit culling, early termination and the alpha_max clamp."""
+    scene = random_scene(2, 300)
+    settings = RasterSettings()
+    proj = project_gaussians(*scene.inputs()[:4], scene.camera.viewmat, scene.camera.K, 40, 30, settings)
+    assert (proj.depths < 0).any() and (proj.radii == 0).any() and (proj.radii > 20).any()
+    assert brute_force(scene, settings).terminated_pixels > 0
+
+
+def test_gradients_match_brute_force_autograd() -> None:
+    """Custom backward == autograd through the brute-force renderer, termination and clamps included."""
+    scene = random_scene(3, 120)
+    settings = RasterSettings(tile_size=8)
+    leaves = [t.clone().requires_grad_(True) for t in scene.inputs()]
+    weights = torch.randn(30, 40, 5, dtype=F64, generator=torch.Generator().manual_seed(7))
+
+    def loss(out) -> Tensor:
+        stacked = torch.cat([out.render, out.alpha[..., None], out.depth[..., None]], dim=-1)
+        return (stacked * weights).sum()
+
+    grads = torch.autograd.grad(loss(rasterize(*leaves, scene.camera, settings)), leaves)
+    ref = Scene(*leaves, camera=scene.camera)
+    ref_grads = torch.autograd.grad(loss(brute_force(ref, settings)), leaves)
+    for name, g, r in zip(
+        ("means", "quats", "scales", "opacities", "features"), grads, ref_grads, strict=True
+    ):
+        torch.testing.assert_close(g, r, rtol=1e-8, atol=1e-9, msg=name)
+
+
+def _tiny_scene() -> Scene:
+    """Three overlapping Gaussians with moderate opacities: smooth, no clamping, no termination."""
+    means = torch.tensor([[0.1, -0.05, 2.0], [-0.2, 0.1, 2.5], [0.25, 0.15, 3.0]], dtype=F64)
+    gen = torch.Generator().manual_seed(11)
+    quats = torch.randn(3, 4, generator=gen, dtype=F64)
+    scales = torch.tensor([[0.15, 0.08, 0.1], [0.1, 0.2, 0.05], [0.2, 0.12, 0.3]], dtype=F64)
+    opacities = torch.tensor([0.5, 0.6, 0.4], dtype=F64)
+    features = torch.rand(3, 2, generator=gen, dtype=F64)
+    K = torch.tensor([[10.0, 0, 6.2], [0, 11.0, 4.9], [0, 0, 1]], dtype=F64)
+    camera = Camera(viewmat=torch.eye(4, dtype=F64), K=K, width=12, height=10)
+    return Scene(means, quats, scales, opacities, features, camera)
+
+
+def test_gradcheck_tiny_scene() -> None:
+    scene = _tiny_scene()
+    settings = RasterSettings(tile_size=8)
+
+    def render(*inputs: Tensor) -> tuple[Tensor, ...]:
+        out = rasterize(*inputs, scene.camera, settings)
+        return out.render, out.alpha, out.depth
+
+    inputs = tuple(t.clone().requires_grad_(True) for t in scene.inputs())
+    assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_means2d_grad_is_populated() -> None:
+    scene = _tiny_scene()
+    leaves = [t.clone().requires_grad_(True) for t in scene.inputs()]
+    out = rasterize(*leaves, scene.camera)
+    out.means2d.retain_grad()
+    out.render.sum().backward()
+    assert out.means2d.grad is not None and out.means2d.grad.shape == (3, 2)
+    assert out.means2d.grad.abs().sum() > 0
+    assert out.weight_sum.requires_grad is False and out.pixel_count.requires_grad is False
+
+
+def test_float32_matches_float64() -> None:
+    scene = random_scene(4, 200)
+    out64 = rasterize(*scene.inputs(), scene.camera)
+    leaves = [t.float().requires_grad_(True) for t in scene.inputs()]
+    cam32 = Camera(scene.camera.viewmat.float(), scene.camera.K.float(), 40, 30)
+    out32 = rasterize(*leaves, cam32)
+    out32.render.sum().backward()
+    assert out32.render.dtype == torch.float32
+    torch.testing.assert_close(out32.render.double(), out64.render, rtol=0, atol=2e-3)
+    assert all(torch.isfinite(t.grad).all() for t in leaves)
+
+
+def test_empty_scene_renders_nothing() -> None:
+    scene = random_scene(5, 0)
+    out = rasterize(*scene.inputs(), scene.camera)
+    assert out.render.shape == (30, 40, 3) and out.alpha.abs().sum() == 0
+
+
+def test_projection_matches_pinhole_and_ewa() -> None:
+    scene = _tiny_scene()
+    cam, settings = scene.camera, RasterSettings()
+    proj = project_gaussians(*scene.inputs()[:4], cam.viewmat, cam.K, cam.width, cam.height, settings)
+    x, y, z = scene.means.unbind(-1)  # viewmat is the identity
+    expected = torch.stack([cam.K[0, 0] * x / z + cam.K[0, 2], cam.K[1, 1] * y / z + cam.K[1, 2]], dim=-1)
+    torch.testing.assert_close(proj.means2d, expected)
+    torch.testing.assert_close(proj.depths, z)
+
+    # The 2D covariance is the 3D one pushed through the numerical Jacobian of the pinhole map.
+    def pinhole(p: Tensor) -> Tensor:
+        return torch.stack([cam.K[0, 0] * p[0] / p[2], cam.K[1, 1] * p[1] / p[2]])
+
+    R = _rotation_from_quat(scene.quats)
+    a, b, c = proj.conics.unbind(-1)
+    for i in range(3):
+        J = torch.autograd.functional.jacobian(pinhole, scene.means[i])
+        sigma = R[i] @ torch.diag(scene.scales[i] ** 2) @ R[i].T
+        cov2d = J @ sigma @ J.T + settings.eps2d * torch.eye(2, dtype=F64)
+        conic = torch.stack([torch.stack([a[i], b[i]]), torch.stack([b[i], c[i]])])
+        torch.testing.assert_close(torch.linalg.inv(conic), cov2d)
+        extent = math.sqrt(2 * math.log(scene.opacities[i].item() / settings.alpha_min))
+        assert proj.radii[i] == math.ceil(extent * math.sqrt(torch.linalg.eigvalsh(cov2d)[-1].item()))
+
+
+def test_projection_of_an_axis_aligned_gaussian() -> None:
+    K = torch.tensor([[100.0, 0, 50.0], [0, 80.0, 40.0], [0, 0, 1]])
+    means = torch.tensor([[0.0, 0.0, 4.0]])
+    scales = torch.tensor([[0.2, 0.1, 0.3]])
+    quats = torch.tensor([[2.0, 0.0, 0.0, 0.0]])  # unnormalised identity
+    proj = project_gaussians(means, quats, scales, torch.ones(1), torch.eye(4), K, 100, 80, RasterSettings())
+    var_x, var_y = (100 * 0.2 / 4) ** 2 + 0.3, (80 * 0.1 / 4) ** 2 + 0.3
+    torch.testing.assert_close(proj.conics, torch.tensor([[1 / var_x, 0.0, 1 / var_y]]))
+    torch.testing.assert_close(proj.means2d, torch.tensor([[50.0, 40.0]]))
+
+
+def test_projection_culls_behind_off_screen_and_faint() -> None:
+    K = torch.tensor([[20.0, 0, 10.0], [0, 20.0, 10.0], [0, 0, 1]])
+    means = torch.tensor(
+        [[0.0, 0.0, -1.0], [0.0, 0.0, 0.005], [30.0, 0.0, 2.0], [0.0, 0.0, 2.0], [0.0, 0, 2.0]]
+    )
+    opacities = torch.tensor([0.9, 0.9, 0.9, 0.9, 0.003])
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(5, 1)
+    proj = project_gaussians(means, quats, torch.full((5, 3), 0.05), opacities, torch.eye(4), K, 20, 20,
+                             RasterSettings())  # fmt: skip
+    assert proj.valid.tolist() == [False, False, False, True, False]
+    assert (proj.radii[~proj.valid] == 0).all() and proj.radii.dtype == torch.int32
+
+
+def _sh_direct(l: int, m: int, d: Tensor) -> Tensor:
+    """Real SH with the Condon-Shortley phase from associated Legendre polynomials."""
+    theta, phi = torch.acos(d[:, 2]), torch.atan2(d[:, 1], d[:, 0])
+    x, am = torch.cos(theta), abs(m)
+    # P_l^|m| by the standard recurrences (Condon-Shortley phase included).
+    p_mm = (-1) ** am * math.prod(range(1, 2 * am, 2)) * torch.sin(theta) ** am
+    p_prev, p = p_mm, x * (2 * am + 1) * p_mm
+    if l == am:
+        p = p_mm
+    for ll in range(am + 2, l + 1):
+        p_prev, p = p, ((2 * ll - 1) * x * p - (ll + am - 1) * p_prev) / (ll - am)
+    norm = math.sqrt((2 * l + 1) / (4 * math.pi) * math.factorial(l - am) / math.factorial(l + am))
+    if m == 0:
+        return norm * p
+    trig = torch.cos(am * phi) if m > 0 else torch.sin(am * phi)
+    return math.sqrt(2) * norm * trig * p
+
+
+def test_eval_sh_matches_direct_formula() -> None:
+    dirs = torch.nn.functional.normalize(
+        torch.tensor([[0.3, -0.5, 0.8], [-0.7, 0.2, -0.1]], dtype=F64), dim=-1
+    )
+    for degree in range(4):
+        for l in range(degree + 1):
+            for m in range(-l, l + 1):
+                sh = torch.zeros(2, 16, 3, dtype=F64)
+                sh[:, l * l + l + m, 1] = 1.0
+                value = eval_sh(degree, sh, dirs)
+                torch.testing.assert_close(value[:, 1], _sh_direct(l, m, dirs), msg=f"l={l} m={m}")
+                assert value[:, 0].abs().max() == 0
+
+
+def test_sh_degree_zero_round_trip() -> None:
+    rgb = torch.rand(5, 3)
+    torch.testing.assert_close(sh_to_rgb(rgb_to_sh(rgb)), rgb)
+    dirs = torch.nn.functional.normalize(torch.randn(5, 3), dim=-1)
+    torch.testing.assert_close(eval_sh(0, rgb_to_sh(rgb)[:, None, :], dirs) + 0.5, rgb)
+    with pytest.raises(ValueError):
+        eval_sh(2, torch.zeros(5, 4, 3), dirs)
+
+
+def test_backend_registry(monkeypatch: pytest.MonkeyPatch) -> None:
+    assert select_backend("auto", torch.device("cpu")) == "torch"
+    assert BACKENDS["torch"].fn is rasterize_reference
+    scene = _tiny_scene()
+    with pytest.raises(ValueError, match="torch"):
+        rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="no-such-backend"))
+
+    # The package re-exports the function `rasterize`, which shadows the module's name as an attribute.
+    monkeypatch.setattr(importlib.import_module("uw3dgs.render.rasterize"), "BACKENDS", dict(BACKENDS))
+    calls = []
+
+    def fake(*args):
+        calls.append(args)
+        return rasterize_reference(*args)
+
+    register_backend("fast", fake, devices=("cpu",), priority=10)
+    register_backend("gpu-only", fake, devices=("cuda",), priority=20)
+    assert select_backend("auto", torch.device("cpu")) == "fast"
+    rasterize(*scene.inputs(), scene.camera)
+    assert len(calls) == 1
+    with pytest.raises(ValueError, match="does not run on cpu"):
+        select_backend("gpu-only", torch.device("cpu"))

@@ -1,0 +1,268 @@
+"""The synthetic scene and the SeaThru-NeRF layout reader: determinism, conventions, ground truth, errors."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
+
+from uw3dgs.cli.synth import entrypoint
+from uw3dgs.data.seathru_layout import read_seathru_layout
+
+# Small and quick; tilted enough that the far edge of the seabed leaves some open water in view.
+SMALL = SyntheticSceneConfig(width=48, height=36, num_views=10, terrain_size=16.0, terrain_resolution=0.04,
+                             tilt_deg=55.0, num_points=1000)
+REAL_SCENE = Path(__file__).resolve().parents[2] / "shared" / "data" / "seathru-nerf" / "IUI3-RedSea"
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory) -> Path:
+    return generate_scene(SMALL, tmp_path_factory.mktemp("synthetic") / "scene", progress=False)
+
+
+@pytest.fixture
+def scene_copy(scene_dir, tmp_path) -> Path:
+    """A private copy to break."""
+    return Path(shutil.copytree(scene_dir, tmp_path / "scene"))
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _pixel_dirs(K: np.ndarray, viewmat: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Unit world directions [H, W, 3] through the pixel centres (u + 0.5, v + 0.5)."""
+    v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    world = cam @ viewmat[:3, :3]  # R^T applied to row vectors
+    return world / np.linalg.norm(world, axis=-1, keepdims=True)
+
+
+def _centre(viewmat: np.ndarray) -> np.ndarray:
+    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+
+
+def test_layout_is_complete(scene_dir):
+    names = [f"{k:04d}" for k in range(SMALL.num_views)]
+    expected = {"poses_bounds.npy", "gt/medium.json", "sparse/0/cameras.bin", "sparse/0/images.bin",
+                "sparse/0/points3D.bin"}
+    expected |= {f"Images_wb/{n}.png" for n in names} | {f"gt/clean/{n}.png" for n in names}
+    expected |= {f"gt/range/{n}.npy" for n in names}
+    assert set(_files(scene_dir)) == expected
+    medium = json.loads((scene_dir / "gt" / "medium.json").read_text())
+    assert medium["units"] == "per metre (world unit)" and medium["seed"] == SMALL.seed
+    assert medium["beta_D"] == pytest.approx(list(SMALL.beta_D))
+    assert medium["config"]["width"] == SMALL.width
+    assert Image.open(scene_dir / "Images_wb" / "0000.png").size == (SMALL.width, SMALL.height)
+
+
+def test_deterministic_from_seed(scene_dir, tmp_path):
+    again = generate_scene(SMALL, tmp_path / "again", progress=False)
+    assert _files(again) == _files(scene_dir)
+    other = _files(generate_scene(dataclasses.replace(SMALL, seed=1), tmp_path / "other", progress=False))
+    reference = _files(scene_dir)
+    for name in ("Images_wb/0000.png", "gt/range/0000.npy", "sparse/0/images.bin", "sparse/0/points3D.bin"):
+        assert other[name] != reference[name], name
+
+
+def test_cache_key_is_stable_and_config_specific():
+    assert cache_key(SMALL) == cache_key(dataclasses.replace(SMALL))
+    assert cache_key(SMALL) != cache_key(dataclasses.replace(SMALL, medium_strength=2.0))
+    assert len(cache_key(SMALL)) == 12
+
+
+def test_impossible_settings_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="width"):
+        dataclasses.replace(SMALL, width=0)
+    with pytest.raises(ValueError, match="increase altitude"):
+        generate_scene(dataclasses.replace(SMALL, altitude=0.05), tmp_path / "buried", progress=False)
+
+
+def test_pycolmap_reads_the_model(scene_dir):
+    rec = pycolmap.Reconstruction(str(scene_dir / "sparse" / "0"))
+    assert rec.num_cameras() == 1 and rec.num_images() == SMALL.num_views
+    camera = next(iter(rec.cameras.values()))
+    assert camera.model_name == "PINHOLE" and (camera.width, camera.height) == (SMALL.width, SMALL.height)
+    fx, fy, cx, cy = camera.params
+    assert fx == pytest.approx(0.5 * SMALL.width / np.tan(np.radians(SMALL.fov_deg / 2)))
+    assert (fy, cx, cy) == (fx, SMALL.width / 2, SMALL.height / 2)
+    assert sorted(im.name for im in rec.images.values()) == [f"{k:04d}.png" for k in range(SMALL.num_views)]
+    assert rec.num_points3D() == SMALL.num_points
+
+
+def test_reader_round_trip(scene_dir):
+    scene = read_seathru_layout(scene_dir)
+    n = SMALL.num_views
+    assert scene.image_names == [f"{k:04d}.png" for k in range(n)]
+    assert scene.images.shape == (n, SMALL.height, SMALL.width, 3)
+    assert scene.gt is not None and scene.gt.ranges.shape == (n, SMALL.height, SMALL.width)
+    assert scene.points.shape == scene.point_colors.shape == (SMALL.num_points, 3)
+    finite = scene.gt.ranges[scene.gt.ranges.isfinite()]
+    assert 0 < scene.near <= finite.min() and scene.far >= finite.max()
+
+
+def test_ground_truth_is_consistent_across_views(scene_dir):
+    """A surface point back-projected from view A with its true range lands, in view B, where B's true
+    range says the surface is: poses and intrinsics follow one convention end to end."""
+    scene = read_seathru_layout(scene_dir)
+    ranges = scene.gt.ranges.double().numpy()
+    for a, b in [(0, 1), (2, 4), (6, 7)]:
+        cam_a, cam_b = scene.cameras[a], scene.cameras[b]
+        va, vb = cam_a.viewmat.double().numpy(), cam_b.viewmat.double().numpy()
+        dirs = _pixel_dirs(cam_a.K.double().numpy(), va, SMALL.height, SMALL.width)
+        seen = np.isfinite(ranges[a])
+        points = _centre(va) + dirs[seen] * ranges[a][seen, None]
+        cam = points @ vb[:3, :3].T + vb[:3, 3]
+        uv = cam @ cam_b.K.double().numpy().T
+        x, y = uv[:, 0] / uv[:, 2] - 0.5, uv[:, 1] / uv[:, 2] - 0.5  # pixel-centre grid coordinates
+        inside = (cam[:, 2] > 0) & (x >= 0) & (x < SMALL.width - 1) & (y >= 0) & (y < SMALL.height - 1)
+        x, y, points = x[inside], y[inside], points[inside]
+        j, i = x.astype(int), y.astype(int)
+        wx, wy = x - j, y - i
+        rb = ranges[b]
+        expected = (rb[i, j] * (1 - wx) + rb[i, j + 1] * wx) * (1 - wy) + \
+                   (rb[i + 1, j] * (1 - wx) + rb[i + 1, j + 1] * wx) * wy
+        valid = np.isfinite(expected)
+        rel = np.abs(np.linalg.norm(points - _centre(vb), axis=1)[valid] - expected[valid]) / expected[valid]
+        assert valid.sum() > 100
+        assert np.median(rel) < 0.005 and np.mean(rel < 0.02) > 0.9  # occlusions and silhouettes aside
+
+
+def test_underwater_image_follows_the_formation_model(scene_dir):
+    scene = read_seathru_layout(scene_dir)
+    medium = scene.gt.medium
+    beta_D, beta_B, B_inf = (np.array(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))
+    t = scene.gt.ranges.double().numpy()[..., None]
+    clean, observed = scene.gt.clean_images.double().numpy(), scene.images.double().numpy()
+    expected = clean * np.exp(-beta_D * t) + B_inf * (1 - np.exp(-beta_B * t))
+    assert np.abs(observed - expected).max() <= 0.5 / 255 + 1e-5
+    water = np.isinf(t[..., 0])
+    assert 0.001 < water.mean() < 0.5  # this tilted config sees some open water beyond the seabed's edge
+    assert (np.round(observed[water] * 255) == np.round(B_inf * 255)).all()
+    assert (clean[water] == 0).all()
+    assert scene.images.std() > 0.02 and scene.gt.clean_images.std() > 0.05  # textured, not flat
+
+
+def test_points_lie_on_the_seen_seabed(scene_dir):
+    """Most points (all but the outliers) sit within a few noise sigmas of the surface of view 0."""
+    scene = read_seathru_layout(scene_dir)
+    viewmat, K = scene.cameras[0].viewmat.double().numpy(), scene.cameras[0].K.double().numpy()
+    points = scene.points.double().numpy()
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    uv = cam @ K.T
+    u, v = uv[:, 0] / uv[:, 2], uv[:, 1] / uv[:, 2]
+    inside = (cam[:, 2] > 0) & (u >= 0) & (u < SMALL.width) & (v >= 0) & (v < SMALL.height)
+    truth = scene.gt.ranges.double().numpy()[0][v[inside].astype(int), u[inside].astype(int)]
+    dist = np.linalg.norm(points[inside] - _centre(viewmat), axis=1)
+    close = np.abs(dist - truth) < 0.1 * truth
+    assert inside.sum() > 50 and close.mean() > 0.75
+
+
+def test_poses_bounds_agree_with_colmap(scene_dir):
+    rows = np.load(scene_dir / "poses_bounds.npy")
+    assert rows.shape == (SMALL.num_views, 17)
+    rec = pycolmap.Reconstruction(str(scene_dir / "sparse" / "0"))
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    fx = next(iter(rec.cameras.values())).params[0]
+    ranges = read_seathru_layout(scene_dir).gt.ranges.double().numpy()
+    for row, image, t in zip(rows, images, ranges, strict=True):
+        llff = row[:15].reshape(3, 5)
+        # LLFF columns (down, right, back) -> OpenCV (right, down, forward)
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.column_stack([llff[:, 1], llff[:, 0], -llff[:, 2]])
+        c2w[:3, 3] = llff[:, 3]
+        w2c = np.eye(4)
+        w2c[:3] = image.cam_from_world().matrix()
+        np.testing.assert_allclose(c2w @ w2c, np.eye(4), atol=1e-9)
+        np.testing.assert_allclose(llff[:, 4], [SMALL.height, SMALL.width, fx])
+        # near/far are the z-depths (not ranges) of the visible seabed, as LLFF stores them
+        dirs = _pixel_dirs(np.array([[fx, 0, SMALL.width / 2], [0, fx, SMALL.height / 2], [0, 0, 1]]),
+                           w2c, SMALL.height, SMALL.width)
+        z = (t * (dirs @ c2w[:3, 2]))[np.isfinite(t)]
+        np.testing.assert_allclose(row[15:], [z.min(), z.max()], rtol=1e-5)
+
+
+def test_lawnmower_path(tmp_path):
+    config = dataclasses.replace(SMALL, path="lawnmower", num_views=9, tilt_deg=30.0, num_points=200)
+    scene = read_seathru_layout(generate_scene(config, tmp_path / "lawn", progress=False))
+    centres = np.stack([c.center.numpy() for c in scene.cameras])
+    lines = np.round(centres[:, 1] / config.line_spacing)  # lines run along x, spaced in y
+    assert len(np.unique(lines)) == config.lawnmower_lines
+    forward = np.stack([c.viewmat[2, :3].numpy() for c in scene.cameras])  # optical axes in world
+    assert np.sign(forward[0, 0]) == -np.sign(forward[3, 0])  # alternate lines face opposite ways
+    assert (forward[:, 2] < 0).all()  # looking down
+
+
+def test_reader_variants(scene_copy):
+    """Lower-case images_wb/, a SIMPLE_PINHOLE camera, and near/far from the points without poses_bounds."""
+    (scene_copy / "Images_wb").rename(scene_copy / "images_wb")
+    (scene_copy / "poses_bounds.npy").unlink()
+    sparse = scene_copy / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    fx, _, cx, cy = rec.cameras[1].params
+    rec.cameras[1] = pycolmap.Camera(model="SIMPLE_PINHOLE", width=SMALL.width, height=SMALL.height,
+                                     camera_id=1, params=[fx, cx, cy])
+    rec.write_binary(str(sparse))
+    scene = read_seathru_layout(scene_copy)
+    assert scene.cameras[0].K[1, 1] == pytest.approx(fx)
+    ranges = scene.gt.ranges[scene.gt.ranges.isfinite()]
+    assert 0 < scene.near < ranges.median() < scene.far
+
+
+def _write_opencv_camera(root: Path) -> None:
+    sparse = root / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    camera = rec.cameras[1]
+    rec.cameras[1] = pycolmap.Camera(model="OPENCV", width=camera.width, height=camera.height, camera_id=1,
+                                     params=[*camera.params, 0.01, 0.0, 0.0, 0.0])
+    rec.write_binary(str(sparse))
+
+
+def _resize_image(root: Path) -> None:
+    path = root / "Images_wb" / "0003.png"
+    Image.open(path).resize((SMALL.width // 2, SMALL.height // 2)).save(path)
+
+
+def _truncate_image(root: Path) -> None:
+    path = root / "Images_wb" / "0003.png"
+    path.write_bytes(path.read_bytes()[:200])
+
+
+@pytest.mark.parametrize(("corrupt", "error", "names"), [
+    (lambda root: (root / "Images_wb" / "0003.png").unlink(), FileNotFoundError, ["0003.png", "images.bin"]),
+    (_truncate_image, ValueError, ["0003.png"]),
+    (_resize_image, ValueError, ["0003.png", "mixed image sizes"]),
+    (_write_opencv_camera, ValueError, ["cameras.bin", "OPENCV", "undistort"]),
+    (lambda root: shutil.rmtree(root / "sparse"), FileNotFoundError, ["sparse/0"]),
+    (lambda root: shutil.rmtree(root / "Images_wb"), FileNotFoundError, ["Images_wb", "images_wb"]),
+], ids=["missing-image", "truncated-image", "mixed-sizes", "distorted-camera", "no-model", "no-images"])
+def test_reader_errors_name_the_file(scene_copy, corrupt, error, names):
+    corrupt(scene_copy)
+    with pytest.raises(error) as info:
+        read_seathru_layout(scene_copy)
+    for name in names:
+        assert name in str(info.value), (name, str(info.value))
+
+
+@pytest.mark.skipif(not REAL_SCENE.is_dir(), reason="real SeaThru-NeRF scene not present")
+def test_reader_refuses_the_distorted_real_scene():
+    with pytest.raises(ValueError, match="OPENCV"):
+        read_seathru_layout(REAL_SCENE)
+
+
+def test_cli_writes_a_scene(tmp_path, capsys):
+    out = tmp_path / "cli"
+    entrypoint(["--out", str(out), "--width", "32", "--height", "24", "--num-views", "4",
+                "--num-points", "100", "--terrain-size", "12", "--terrain-resolution", "0.05",
+                "--medium-strength", "2"])
+    scene = read_seathru_layout(out)
+    assert scene.images.shape == (4, 24, 32, 3)
+    assert scene.gt.medium["beta_D"] == pytest.approx([0.8, 0.4, 0.24])
+    assert "views" in capsys.readouterr().out

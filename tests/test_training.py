@@ -1,0 +1,107 @@
+"""End to end: train 3DGS on a tiny synthetic scene, checkpoint, resume, evaluate, fail clearly."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from uw3dgs.cli.eval import EvalArgs, run_eval
+from uw3dgs.config import load_config
+from uw3dgs.engine.checkpoint import list_checkpoints
+from uw3dgs.engine.trainer import Trainer, TrainingDivergedError
+
+
+def train(config):
+    trainer = Trainer(config)
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+def test_training_learns_and_writes_the_run_folder(make_config):
+    trainer = Trainer(make_config(steps=60, timestamp="t"))
+    trainer.setup()
+    first = trainer.eval_all(0)["psnr"]
+    n0 = trainer.model.num_gaussians
+    trainer.train()
+    last = trainer.eval_all(60)["psnr"]
+    assert last > first + 3.0, (first, last)
+    assert trainer.model.num_gaussians != n0  # densification and pruning ran
+    run_dir = trainer.run_dir
+    assert run_dir.parts[-3:] == ("synthetic", "3dgs", "t")
+    assert (run_dir / "config.yml").is_file()
+    assert [p.name for p in list_checkpoints(run_dir)] == ["step-000040.ckpt", "step-000060.ckpt"]
+    assert list(run_dir.glob("events.out.tfevents.*"))
+    saved = load_config(run_dir / "config.yml")
+    assert saved == trainer.config
+
+
+def test_resume_matches_an_uninterrupted_run(make_config, monkeypatch):
+    # opacity reset at step 15 and densification up to 20 both happen before the kill: their state must survive
+    full = train(make_config(steps=40, reset_opacity_every=15, timestamp="full"))
+
+    config = make_config(steps=40, reset_opacity_every=15, timestamp="killed")
+    killed = Trainer(config)
+    killed.setup()
+    original = Trainer.train_step
+
+    def dies_after_25(self, step):
+        if step == 26:
+            raise KeyboardInterrupt  # the process is killed mid-run
+        return original(self, step)
+
+    monkeypatch.setattr(Trainer, "train_step", dies_after_25)
+    with pytest.raises(KeyboardInterrupt):
+        killed.train()
+    monkeypatch.setattr(Trainer, "train_step", original)
+    assert [p.name for p in list_checkpoints(killed.run_dir)] == ["step-000020.ckpt"]
+
+    resumed = Trainer(dataclasses.replace(config, resume=True))
+    resumed.setup()
+    assert resumed.start_step == 20
+    resumed.train()
+    a, b = full.model.state_dict(), resumed.model.state_dict()
+    assert a.keys() == b.keys()
+    for key in a:
+        assert a[key].shape == b[key].shape, key
+        torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6, msg=key)
+
+
+def test_resume_without_checkpoint_is_a_clear_error(make_config):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        Trainer(make_config(resume=True, timestamp="never-trained")).setup()
+
+
+def test_nan_loss_stops_with_a_clear_error_and_keeps_checkpoints(make_config, monkeypatch):
+    trainer = Trainer(make_config(steps=40, timestamp="nan"))
+    trainer.setup()
+    original = trainer.model.get_loss_dict
+
+    def poisoned(outputs, batch, step):
+        losses = original(outputs, batch, step)
+        return {k: v * float("nan") for k, v in losses.items()} if step == 25 else losses
+
+    monkeypatch.setattr(trainer.model, "get_loss_dict", poisoned)
+    with pytest.raises(TrainingDivergedError, match="step 25.*--resume"):
+        trainer.train()
+    assert [p.name for p in list_checkpoints(trainer.run_dir)] == ["step-000020.ckpt"]
+
+
+def test_uw_eval_writes_nerfstudio_shaped_json(make_config):
+    trainer = train(make_config(steps=20, timestamp="ev"))
+    out = trainer.run_dir / "metrics.json"
+    run_eval(EvalArgs(load_config=trainer.run_dir / "config.yml", output_path=out))
+    data = json.loads(out.read_text())
+    assert data["method_name"] == "3dgs" and data["experiment_name"] == "synthetic"
+    assert data["checkpoint"].endswith("step-000020.ckpt")
+    results = data["results"]
+    for key in ("psnr", "psnr_std", "ssim", "ssim_std", "num_gaussians"):
+        assert key in results
+    assert results["num_gaussians"] == trainer.model.num_gaussians
+    expected = trainer.eval_all(20)
+    assert results["psnr"] == pytest.approx(expected["psnr"], abs=1e-4)
+    assert len(data["per_image"]) == len(trainer.datamanager.test_indices)
+    assert (trainer.run_dir / "eval" / "renders" / "compare").is_dir()

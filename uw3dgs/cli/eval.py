@@ -1,0 +1,73 @@
+"""`uw-eval CONFIG.yml`: render the test views of a trained run and write its metrics as JSON."""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+from rich.console import Console
+from rich.table import Table
+
+
+@dataclass(frozen=True)
+class EvalArgs:
+    load_config: tyro.conf.Positional[Path]
+    """The run's config.yml (outputs/<scene>/<method>/<timestamp>/config.yml)."""
+    output_path: Path | None = None
+    """Where the metrics JSON goes; default <run>/eval/results.json."""
+    render_output_path: Path | None = None
+    """Where the test-view renders go (GT, render, depth, side by side); default <run>/eval/renders."""
+    save_renders: bool = True
+    """Write the renders as PNG."""
+    device: str = "auto"
+
+
+def run_eval(args: EvalArgs) -> dict:
+    from uw3dgs.engine.evaluator import evaluate_views, load_trained, write_json
+    from uw3dgs.engine.trainer import resolve_device
+
+    device = resolve_device(args.device)
+    config, datamanager, model, checkpoint = load_trained(args.load_config, device)
+    if not datamanager.test_indices:
+        raise ValueError(f"{args.load_config}: the run has no test views (--datamanager.llffhold 0)")
+    run_dir = Path(args.load_config).parent
+    renders = (args.render_output_path or run_dir / "eval" / "renders") if args.save_renders else None
+    result = evaluate_views(model, datamanager, progress=True, save_dir=renders)
+    summary = {**result["summary"], "num_gaussians": getattr(model, "num_gaussians", None),
+               "num_test_views": len(datamanager.test_indices)}
+    data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
+            "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"]}
+    output = args.output_path or run_dir / "eval" / "results.json"
+    write_json(output, data)
+    data["output_path"] = str(output)
+    return data
+
+
+def print_results(data: dict) -> None:
+    table = Table(title=f"{data['experiment_name']} / {data['method_name']}")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key, value in data["results"].items():
+        table.add_row(key, f"{value:.4f}" if isinstance(value, float) else str(value))
+    console = Console()
+    console.print(table)
+    console.print(f"written to {data['output_path']}")
+
+
+def entrypoint(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    args = tyro.cli(EvalArgs, args=argv, prog="uw-eval", description=__doc__)
+    try:
+        print_results(run_eval(args))
+    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+        if os.environ.get("UW3DGS_DEBUG"):
+            raise
+        Console().print(f"[bold red]error:[/bold red] {exc}")
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,26 @@
+"""Training callbacks: how a method hooks densification, pruning and schedules into the generic loop."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class TrainingCallback:
+    """Hooks the Trainer calls every step; override what you need. State is saved in checkpoints."""
+
+    name: str = "callback"
+
+    def before_step(self, step: int) -> None:
+        """Before the forward pass (schedules: SH degree, learning rates)."""
+
+    def after_backward(self, step: int, outputs: dict[str, Any]) -> None:
+        """Gradients exist, parameters not yet updated (read screen-space gradients here)."""
+
+    def after_step(self, step: int, outputs: dict[str, Any]) -> None:
+        """After the optimizer step (densify, prune, reset: parameters may change size here)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what `state_dict` returned."""

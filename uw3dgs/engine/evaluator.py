@@ -1,0 +1,76 @@
+"""Rendering the test views of a trained model and measuring them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+from rich.progress import track
+
+from uw3dgs.config import load_config
+from uw3dgs.data.datamanager import DataManager
+from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint
+from uw3dgs.engine.config import TrainConfig
+from uw3dgs.models.base import Model
+from uw3dgs.utils.images import write_image
+from uw3dgs.utils.visualize import image_grid
+
+
+@torch.no_grad()
+def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True,
+                   save_dir: Path | None = None) -> dict[str, Any]:
+    """Per-view metrics of every test view and their mean and standard deviation (per image, then averaged)."""
+    was_training = model.training
+    model.eval()
+    per_image: list[dict[str, Any]] = []
+    batches = list(datamanager.test_batches())
+    for batch in track(batches, description="eval", disable=not progress):
+        outputs = model.get_outputs(batch["camera"])
+        name = datamanager.scene.image_names[batch["index"]]
+        per_image.append({"image": name, **model.get_eval_metrics(outputs, batch)})
+        if save_dir is not None:
+            images = model.get_image_dict(outputs, batch)
+            stem = Path(name).stem
+            for key, image in images.items():
+                write_image(save_dir / key / f"{stem}.png", image)
+            write_image(save_dir / "compare" / f"{stem}.png", image_grid(list(images.values()), ncols=len(images)))
+    model.train(was_training)
+    summary: dict[str, float] = {}
+    for key in (per_image[0].keys() if per_image else []):
+        if key == "image":
+            continue
+        values = torch.tensor([row[key] for row in per_image], dtype=torch.float64)
+        summary[key] = float(values.mean())
+        summary[f"{key}_std"] = float(values.std(unbiased=False))
+    return {"per_image": per_image, "summary": summary}
+
+
+def load_trained(config_path: Path, device: torch.device | str = "cpu") -> tuple[TrainConfig, DataManager, Model, Path]:
+    """Rebuild a run from its config.yml and latest checkpoint: (config, datamanager, model, checkpoint)."""
+    config: TrainConfig = load_config(config_path)
+    run_dir = Path(config_path).parent
+    checkpoint_path = latest_checkpoint(run_dir)
+    if checkpoint_path is None:
+        raise FileNotFoundError(f"{run_dir} holds no checkpoint (checkpoints/step-*.ckpt); train it first or "
+                                "pass another run's config.yml")
+    config = dataclasses.replace(config, progress=False)
+    datamanager = config.datamanager.setup(data=config.data, downscale_factor=config.downscale_factor,
+                                           device=device, seed=config.seed)
+    model = config.model.setup(scene=datamanager.scene, train_indices=datamanager.train_indices)
+    state = load_checkpoint(checkpoint_path, "cpu")
+    model.load_checkpoint_state(state["model"])
+    model.to(device)
+    return config, datamanager, model, checkpoint_path
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2)
+    os.replace(tmp, path)

@@ -1,0 +1,90 @@
+"""Per-parameter-group Adam optimizers and learning-rate schedules.
+
+The method names its parameter groups (`Model.param_groups()`); the config gives each group a
+learning rate and an optional schedule. One Adam per group, as nerfstudio does, so densification can
+resize one group's parameters and Adam moments without touching the others.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class ParamGroupConfig:
+    lr: float
+    eps: float = 1e-15
+    """Adam epsilon; 3DGS uses 1e-15 so that tiny gradients still move parameters."""
+    scale_by_scene_extent: bool = False
+    """Multiply the learning rates by the scene's extent (3DGS does so for Gaussian positions)."""
+    lr_final: float | None = None
+    """If set, the rate decays log-linearly from lr to lr_final (3DGS's position schedule); else constant."""
+    decay_steps: int | None = None
+    """Steps of the decay; None follows --max-num-iterations."""
+
+
+def exponential_decay(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
+    t = min(max(step / max(max_steps, 1), 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1 - t) + math.log(lr_final) * t)
+
+
+class Optimizers:
+    """Named Adam optimizers, one per parameter group, with their schedules."""
+
+    def __init__(self, configs: dict[str, ParamGroupConfig], params: dict[str, list[nn.Parameter]],
+                 scene_extent: float, max_num_iterations: int):
+        missing = set(params) - set(configs)
+        if missing:
+            raise ValueError(f"no optimizer config for parameter group(s) {sorted(missing)}")
+        self.configs = configs
+        self.max_num_iterations = max_num_iterations
+        self.base_lr = {n: c.lr * (scene_extent if c.scale_by_scene_extent else 1.0) for n, c in configs.items()
+                        if n in params}
+        self.optimizers = {n: torch.optim.Adam(p, lr=self.base_lr[n], eps=configs[n].eps)
+                           for n, p in params.items()}
+
+    def lr(self, name: str, step: int) -> float:
+        config = self.configs[name]
+        if config.lr_final is None:
+            return self.base_lr[name]
+        scale = self.base_lr[name] / config.lr
+        steps = config.decay_steps or self.max_num_iterations
+        return exponential_decay(step, self.base_lr[name], config.lr_final * scale, steps)
+
+    def set_step(self, step: int) -> None:
+        for name, opt in self.optimizers.items():
+            for group in opt.param_groups:
+                group["lr"] = self.lr(name, step)
+
+    def zero_grad(self) -> None:
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+
+    def step(self) -> None:
+        for opt in self.optimizers.values():
+            opt.step()
+
+    def state_dict(self) -> dict[str, Any]:
+        return {name: opt.state_dict() for name, opt in self.optimizers.items()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        for name, opt in self.optimizers.items():
+            opt.load_state_dict(state[name])
+
+    # -- surgery for densification: parameters change size, Adam moments must follow --
+
+    def replace_param(self, name: str, old: nn.Parameter, new: nn.Parameter, moments_fn) -> None:
+        """Swap `old` for `new` in group `name`; `moments_fn(tensor) -> tensor` maps each Adam moment."""
+        opt = self.optimizers[name]
+        state = opt.state.pop(old, None)
+        for group in opt.param_groups:
+            group["params"] = [new if p is old else p for p in group["params"]]
+        if state:
+            for key in ("exp_avg", "exp_avg_sq"):
+                state[key] = moments_fn(state[key])
+            opt.state[new] = state

@@ -1,0 +1,66 @@
+"""The interface every method's model implements; the Trainer knows nothing else about a method."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor, nn
+
+from uw3dgs.cameras import Camera
+from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.data.datamanager import Batch
+from uw3dgs.data.scene import SceneData, scene_extent
+from uw3dgs.engine.callbacks import TrainingCallback
+from uw3dgs.engine.optimizers import Optimizers
+from uw3dgs.metrics.image import psnr, ssim
+
+
+@dataclass(frozen=True)
+class ModelConfig(InstantiateConfig):
+    _target: Target = target(lambda: Model)
+
+
+class Model(nn.Module):
+    """A scene representation plus how it renders, what it is trained with and what it reports.
+
+    Built as `config.setup(scene=..., train_indices=...)`: the model sees the loaded scene (initial
+    points, cameras, bounds) but not the datamanager.
+    """
+
+    def __init__(self, config: ModelConfig, scene: SceneData, train_indices: list[int]):
+        super().__init__()
+        self.config = config
+        self.scene_extent = scene_extent([scene.cameras[i] for i in train_indices])
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Named parameter groups; the method's optimizer configs give each its learning rate."""
+        raise NotImplementedError
+
+    def get_outputs(self, camera: Camera) -> dict[str, Any]:
+        """Render one view. Must contain 'rgb' [H, W, 3], the image compared with the dataset's."""
+        raise NotImplementedError
+
+    def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
+        """Weighted loss terms; the Trainer back-propagates their sum."""
+        raise NotImplementedError
+
+    def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        """Scalars for the progress bar and TensorBoard."""
+        return {}
+
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        """Per-test-view metrics for evaluation: PSNR and SSIM of 'rgb' against the dataset's image."""
+        pred = outputs["rgb"].detach().clamp(0, 1)
+        return {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
+
+    def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
+        """Named [H, W, 3] images in [0, 1] for TensorBoard and the saved renders."""
+        return {}
+
+    def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
+        return []
+
+    def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
+        """Load weights saved by `state_dict()` (override when parameter shapes change in training)."""
+        self.load_state_dict(state)

@@ -1,0 +1,83 @@
+"""The one rasterization entry point, dispatching to a registry of backends.
+
+Every backend has the signature of `rasterize_reference` and must match it numerically (the tests
+compare against it). Backends register with the device types they run on and a priority; 'auto'
+picks the highest-priority backend for the device of the Gaussians.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from uw3dgs.cameras import Camera
+from uw3dgs.render.reference import rasterize_reference
+from uw3dgs.render.types import RasterOutput, RasterSettings
+
+RasterFn = Callable[..., RasterOutput]
+"""(means, quats, scales, opacities, features, viewmat, K, width, height, settings) -> RasterOutput."""
+
+
+@dataclass(frozen=True)
+class Backend:
+    """A registered rasterizer; calling it calls `fn`."""
+
+    fn: RasterFn
+    devices: frozenset[str]
+    """torch device types it runs on ('cpu', 'cuda', ...)."""
+    priority: int
+    """'auto' prefers higher priorities."""
+
+    def __call__(self, *args, **kwargs) -> RasterOutput:
+        return self.fn(*args, **kwargs)
+
+
+BACKENDS: dict[str, Backend] = {}
+
+
+def register_backend(name: str, fn: RasterFn, devices: tuple[str, ...], priority: int = 0) -> None:
+    """Make `fn` available as `RasterSettings(backend=name)` on the given device types."""
+    BACKENDS[name] = Backend(fn=fn, devices=frozenset(devices), priority=priority)
+
+
+def select_backend(name: str, device: torch.device) -> str:
+    """Resolve a settings.backend value ('auto' or a registered name) for tensors on `device`."""
+    usable = sorted(
+        (n for n, b in BACKENDS.items() if device.type in b.devices),
+        key=lambda n: -BACKENDS[n].priority,
+    )
+    if name == "auto":
+        if not usable:
+            raise ValueError(f"no rasterizer backend runs on {device.type}; registered: {sorted(BACKENDS)}")
+        return usable[0]
+    if name not in BACKENDS:
+        raise ValueError(f"unknown rasterizer backend {name!r}; available: {['auto', *sorted(BACKENDS)]}")
+    if name not in usable:
+        raise ValueError(f"rasterizer backend {name!r} does not run on {device.type}; there use: {usable}")
+    return name
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    camera: Camera,
+    settings: RasterSettings = RasterSettings(),
+) -> RasterOutput:
+    """Render one view of activated Gaussians (see `rasterize_reference` for shapes and conventions).
+
+    means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (exp'd), opacities [N] (sigmoid'd),
+    features [N, C]. Returns a [H, W, C] render and [H, W] alpha and depth, with no background:
+    compose with render + (1 - alpha[..., None]) * background.
+    """
+    backend = BACKENDS[select_backend(settings.backend, means.device)]
+    view = (camera.viewmat, camera.K, camera.width, camera.height)
+    return backend(means, quats, scales, opacities, features, *view, settings)
+
+
+register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), priority=0)
