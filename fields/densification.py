@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 from uw3dgs.fields.gaussians import PARAM_NAMES, GaussianField
+from uw3dgs.render.projection import quat_to_rotmat
 
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.optimizers import Optimizers
@@ -126,7 +127,7 @@ class Densifier(TrainingCallback):
         mask = mask.to(g.means.device)
         values = {name: getattr(g, name).detach()[mask].repeat_interleave(k, dim=0) for name in PARAM_NAMES}
         scales = torch.exp(values["scales"])
-        rot = quaternion_to_matrix(torch.nn.functional.normalize(values["quats"], dim=-1))
+        rot = quat_to_rotmat(values["quats"])
         offsets = torch.einsum("nij,nj->ni", rot, torch.randn_like(scales) * scales)
         values["means"] = values["means"] + offsets
         values["scales"] = torch.log(scales / (0.8 * k))  # 3DGS shrinks split Gaussians by 1.6 for k = 2
@@ -172,12 +173,3 @@ class Densifier(TrainingCallback):
         self.visible_count = state["visible_count"].clone()
         self.max_radii = state["max_radii"].clone()
 
-
-def quaternion_to_matrix(q: Tensor) -> Tensor:
-    """Unit quaternions (w, x, y, z) [N, 4] to rotation matrices [N, 3, 3]."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(*q.shape[:-1], 3, 3)
