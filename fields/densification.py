@@ -12,11 +12,11 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from uw3dgs.fields.gaussians import PARAM_NAMES, GaussianField
-from uw3dgs.render.projection import quat_to_rotmat
 
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.optimizers import Optimizers
+from uw3dgs.fields.gaussians import PARAM_NAMES, GaussianField
+from uw3dgs.render.projection import quat_to_rotmat
 
 
 @dataclass(frozen=True)

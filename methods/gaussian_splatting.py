@@ -7,8 +7,6 @@ from typing import Any, Literal
 
 import torch
 from torch import Tensor, nn
-from uw3dgs.fields.densification import DensificationConfig, Densifier
-from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 
 from uw3dgs.cameras import Camera
 from uw3dgs.config import Target, target
@@ -17,6 +15,8 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
+from uw3dgs.fields.densification import DensificationConfig, Densifier
+from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.registry import MethodSpec

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pytest
 import torch
+
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
-from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
-
 from uw3dgs.engine.config import TrainConfig
+from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 
 torch.set_num_threads(2)
 

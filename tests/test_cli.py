@@ -6,12 +6,12 @@ import dataclasses
 from pathlib import Path
 
 import pytest
-from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 
 from uw3dgs.cli.train import entrypoint, parse_config
 from uw3dgs.config import config_from_dict, config_to_dict, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig
+from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
+from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 from uw3dgs.registry import METHODS
 
 

@@ -11,10 +11,10 @@ import numpy as np
 import pycolmap
 import pytest
 from PIL import Image
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
 
 from uw3dgs.cli.synth import entrypoint
 from uw3dgs.data.seathru_layout import read_seathru_layout
+from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
 
 # Small and quick; tilted enough that the far edge of the seabed leaves some open water in view.
 SMALL = SyntheticSceneConfig(width=48, height=36, num_views=10, terrain_size=16.0, terrain_resolution=0.04,
@@ -83,6 +83,10 @@ def test_impossible_settings_are_refused(tmp_path):
         dataclasses.replace(SMALL, width=0)
     with pytest.raises(ValueError, match="increase altitude"):
         generate_scene(dataclasses.replace(SMALL, altitude=0.05), tmp_path / "buried", progress=False)
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "notes.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="not empty"):
+        generate_scene(SMALL, tmp_path / "used", progress=False)
 
 
 def test_pycolmap_reads_the_model(scene_dir):

@@ -8,12 +8,11 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
-
 from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import DataManager, DataManagerConfig
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.seathru_layout import read_seathru_layout
+from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
 from uw3dgs.registry import DataManagerSpec
 
 

@@ -627,11 +627,14 @@ def _write_medium(path: Path, cfg: SyntheticSceneConfig, medium: dict[str, np.nd
 
 
 def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool = True) -> Path:
-    """Write the scene to `out_dir` in the SeaThru-NeRF layout plus gt/; returns `out_dir`.
+    """Write the scene to `out_dir` (new or empty) in the SeaThru-NeRF layout plus gt/; returns `out_dir`.
 
     gt/medium.json is written last: its presence marks a complete scene (useful for caches).
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
+        # Never mix with (or delete) what is there: stale views of another scene would corrupt this one.
+        raise ValueError(f"{out_dir} is not empty; write the scene to a new or empty folder")
     seeds = np.random.SeedSequence(config.seed).spawn(3)  # independent streams: poses, terrain, points
     pose_rng, terrain_rng, point_rng = (np.random.default_rng(s) for s in seeds)
     K = intrinsics(config)

@@ -26,7 +26,7 @@ class SynthArgs:
     """Write the built-in synthetic underwater scene (procedural seabed, known medium) to a folder."""
 
     out: Path
-    """Folder to write the scene into (created if needed; files already there are overwritten)."""
+    """Folder to write the scene into; it must be new or empty."""
     scene: tyro.conf.OmitArgPrefixes[SyntheticSceneConfig] = field(default_factory=SyntheticSceneConfig)
     """The scene's knobs, as flat flags (--width, --num-views, --medium-strength, ...)."""
 

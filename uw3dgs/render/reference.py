@@ -158,7 +158,7 @@ def _chunk_alpha(
     # alpha_min per pixel, infinite where the tile sticks out of the image.
     inside = (py < height)[:, :, None] & (px < width)[:, None, :]
     threshold = torch.where(inside, settings.alpha_min, torch.inf).to(table.dtype)
-    alpha.mul_((power <= 0) & (alpha >= threshold[..., None]))
+    alpha.masked_fill_((power > 0) | (alpha < threshold[..., None]), 0.0)
     return _ChunkAlpha(alpha=alpha, dx=dx, dy=dy, params=params)
 
 
@@ -172,7 +172,7 @@ def _blend_weights(alpha: Tensor, transmittance_min: float) -> Tensor:
     weights = torch.empty_like(alpha)
     weights[..., 0] = alpha[..., 0]
     torch.mul(alpha[..., 1:], t_after[..., :-1], out=weights[..., 1:])
-    return weights.mul_(t_after >= transmittance_min)
+    return weights.masked_fill_(t_after < transmittance_min, 0.0)
 
 
 def _tiles_to_image(tiles: Tensor, bins: TileBins, width: int, height: int) -> Tensor:
@@ -248,7 +248,7 @@ def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) ->
     behind = torch.cumsum(weighted, dim=-1)
     behind = behind[..., -1:] - behind  # S_i
     grad_power = torch.addcdiv(weighted, behind.mul_(alpha), 1.0 - alpha, value=-1.0)
-    grad_power.mul_(alpha < settings.alpha_max)
+    grad_power.masked_fill_(alpha >= settings.alpha_max, 0.0)
 
     # Moments of dL/dpower over the tile's pixels, via separable row / column sums.
     per_col = grad_power.sum(1)  # [nt, T, K], summed over rows
