@@ -112,8 +112,9 @@ class Trainer:
         losses = self.model.get_loss_dict(outputs, batch, step)
         loss = sum(losses.values())
         if not math.isfinite(float(loss.detach())):
+            terms = {k: float(v.detach()) for k, v in losses.items()}
             raise TrainingDivergedError(
-                f"step {step}: loss is {float(loss.detach())} ({ {k: float(v.detach()) for k, v in losses.items()} }); nothing was "
+                f"step {step}: loss is {float(loss.detach())} ({terms}); nothing was "
                 f"written for this step. Resume from the last checkpoint in {self.run_dir / 'checkpoints'} with "
                 "--load-config <run>/config.yml --resume, after lowering the learning rates (--optimizers.*.lr)")
         self.optimizers.zero_grad()
