@@ -65,8 +65,7 @@ def downscale_scene(scene: SceneData, factor: int) -> SceneData:
         any_inf = pool((~torch.isfinite(ranges)).float()) > 0
         pooled = torch.where(any_inf, torch.full_like(any_inf, float("inf"), dtype=ranges.dtype), pool(finite))
         gt = GroundTruth(pool(scene.gt.clean_images), pooled.squeeze(-1), scene.gt.medium)
-    return SceneData(scene.name, scene.image_names, pool(scene.images), cameras, scene.points,
-                     scene.point_colors, scene.near, scene.far, gt)
+    return dataclasses.replace(scene, images=pool(scene.images), cameras=cameras, gt=gt)
 
 
 class DataManager:

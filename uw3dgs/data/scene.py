@@ -39,6 +39,10 @@ class SceneData:
     far: float
     """Depth bounds of the scene along the rays, in world units."""
     gt: GroundTruth | None = None
+    dataset_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dataset_scale: float = 1.0
+    """Scene normalisation: world = (dataset - dataset_center) / dataset_scale. A distance d in world
+    units is d * dataset_scale dataset units (the medium's beta is per dataset unit)."""
 
 
 def scene_extent(cameras: list[Camera]) -> float:

@@ -16,7 +16,7 @@ from uw3dgs.config import config_to_dict, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManager
 from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from uw3dgs.engine.config import TrainConfig
-from uw3dgs.engine.evaluator import evaluate_views
+from uw3dgs.engine.evaluator import evaluate_views, write_json
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.engine.progress import TrainingProgress
 from uw3dgs.engine.writer import EventWriter
@@ -68,6 +68,10 @@ class Trainer:
         if checkpoint is not None:
             self._restore(checkpoint)
         save_config(config, self.run_dir / "config.yml")
+        scene = self.datamanager.scene
+        write_json(self.run_dir / "dataparser_transforms.json",
+                   {"dataset_center": list(scene.dataset_center), "dataset_scale": scene.dataset_scale,
+                    "meaning": "world = (dataset - dataset_center) / dataset_scale"})
         self.writer = EventWriter(self.run_dir)
 
     def _checkpoint_to_resume(self) -> dict[str, Any] | None:

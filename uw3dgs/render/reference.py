@@ -9,6 +9,7 @@ however many Gaussians and pixels there are.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -132,7 +133,9 @@ class _ChunkAlpha:
     """A chunk's alphas after the alpha_min and power rules, Gaussians along the last dim."""
 
     alpha: Tensor
-    """[nt, T, T, K] alpha per (tile, row, column, Gaussian); 0 where skipped or off the image."""
+    """[nt, T, T, K] alpha per (tile, row, column, Gaussian); 0 where skipped."""
+    hit: Tensor
+    """[nt, T, T, K] 1 where not skipped (power <= 0, alpha >= alpha_min, pixel in the image), else 0."""
     dx: Tensor
     """[nt, T, K] pixel-centre x minus mean x per column."""
     dy: Tensor
@@ -151,45 +154,70 @@ def _chunk_alpha(
     dx = px[:, :, None] - params[:, None, :, 0]
     dy = py[:, :, None] - params[:, None, :, 1]
     a, b, c, opacity = (params[:, None, :, i] for i in range(2, 6))
-    # power[y, x] = -a dx^2/2 - c dy^2/2 - b dx dy, built from separable row and column terms.
-    power = (-0.5 * c * dy * dy)[:, :, None] + (-0.5 * a * dx * dx)[:, None]
-    power.addcmul_((-b * dy)[:, :, None], dx[:, None])
-    alpha = power.clamp(min=EXP_FLOOR).exp_().mul_(opacity[:, None]).clamp_(max=settings.alpha_max)
+    log_opacity = torch.log(opacity)  # folded into the exponent: saves a full-size multiply
+    # log(opacity) + power[y, x], power = -a dx^2/2 - c dy^2/2 - b dx dy, from separable row / column terms.
+    exponent = (-0.5 * c * dy * dy + log_opacity)[:, :, None] + (-0.5 * a * dx * dx)[:, None]
+    exponent.addcmul_((-b * dy)[:, :, None], dx[:, None])
+    alpha = exponent.clamp(min=EXP_FLOOR).exp_().clamp_(max=settings.alpha_max)
     # alpha_min per pixel, infinite where the tile sticks out of the image.
     inside = (py < height)[:, :, None] & (px < width)[:, None, :]
     threshold = torch.where(inside, settings.alpha_min, torch.inf).to(table.dtype)
-    alpha.masked_fill_((power > 0) | (alpha < threshold[..., None]), 0.0)
-    return _ChunkAlpha(alpha=alpha, dx=dx, dy=dy, params=params)
+    hit = _float_mask(torch.le, exponent, log_opacity[:, None], out=exponent)  # power <= 0
+    hit.mul_(_float_mask(torch.ge, alpha, threshold[..., None]))
+    return _ChunkAlpha(alpha=alpha.mul_(hit), hit=hit, dx=dx, dy=dy, params=params)
 
 
-def _blend_weights(alpha: Tensor, transmittance_min: float) -> Tensor:
-    """Front-to-back weights alpha_i T_i along the last dim, with 3DGS early termination.
+def _float_mask(compare: Callable[..., Tensor], x: Tensor, y: Tensor, out: Tensor | None = None) -> Tensor:
+    """compare(x, y) as 0/1 in x's dtype: on CPU, comparisons writing floats vectorise, bool ones do not."""
+    return compare(x, y, out=torch.empty_like(x) if out is None else out)
+
+
+@dataclass
+class _Blend:
+    """Front-to-back compositing of a chunk, Gaussians along the last dim."""
+
+    weights: Tensor
+    """alpha_i T_i, 0 where not blended."""
+    transmit: Tensor
+    """1 - alpha_i."""
+    kept: Tensor
+    """1 before early termination (the transmittance after i is still >= transmittance_min), else 0."""
+
+
+def _blend(alpha: Tensor, transmittance_min: float) -> _Blend:
+    """Blending weights with 3DGS early termination.
 
     A Gaussian is blended only if the transmittance after it stays >= transmittance_min; since that
     transmittance never increases, this also drops everything behind the first one that fails.
     """
-    t_after = torch.cumprod(1.0 - alpha, dim=-1)
+    transmit = 1.0 - alpha
+    t_after = torch.cumprod(transmit, dim=-1)
     weights = torch.empty_like(alpha)
     weights[..., 0] = alpha[..., 0]
     torch.mul(alpha[..., 1:], t_after[..., :-1], out=weights[..., 1:])
-    return weights.masked_fill_(t_after < transmittance_min, 0.0)
+    kept = _float_mask(torch.ge, t_after, transmittance_min, out=t_after)
+    return _Blend(weights=weights.mul_(kept), transmit=transmit, kept=kept)
+
+
+# Per-tile pixel buffers are channel-major, [tiles, C, T*T]: MKL's skinny batched GEMMs are several
+# times faster with the few channels as the rows of the output than as its columns.
 
 
 def _tiles_to_image(tiles: Tensor, bins: TileBins, width: int, height: int) -> Tensor:
-    """[tiles, T*T, C] per-tile pixels to a [height, width, C] image."""
+    """[tiles, C, T*T] per-tile pixels to a [height, width, C] image."""
     t = bins.tile_size
-    grid = tiles.view(bins.tiles_y, bins.tiles_x, t, t, -1).permute(0, 2, 1, 3, 4)
+    grid = tiles.view(bins.tiles_y, bins.tiles_x, -1, t, t).permute(0, 3, 1, 4, 2)
     return grid.reshape(bins.tiles_y * t, bins.tiles_x * t, -1)[:height, :width]
 
 
 def _image_to_tiles(image: Tensor, bins: TileBins) -> Tensor:
-    """[height, width, C] image to [tiles, T*T, C] per-tile pixels, zero-padded at the border."""
+    """[height, width, C] image to [tiles, C, T*T] per-tile pixels, zero-padded at the border."""
     t = bins.tile_size
     height, width, channels = image.shape
     padded = image.new_zeros(bins.tiles_y * t, bins.tiles_x * t, channels)
     padded[:height, :width] = image
-    grid = padded.view(bins.tiles_y, t, bins.tiles_x, t, channels).permute(0, 2, 1, 3, 4)
-    return grid.reshape(bins.tiles_y * bins.tiles_x, t * t, channels)
+    grid = padded.view(bins.tiles_y, t, bins.tiles_x, t, channels).permute(0, 2, 4, 1, 3)
+    return grid.reshape(bins.tiles_y * bins.tiles_x, channels, t * t)
 
 
 class _CompositeTiles(torch.autograd.Function):
@@ -200,16 +228,18 @@ class _CompositeTiles(torch.autograd.Function):
         n = len(means2d)
         table = _pack(means2d, conics, opacities, feats)
         chunks = _plan_chunks(bins, n, CHUNK_ELEMENTS)
-        out = table.new_zeros(bins.tiles_x * bins.tiles_y, bins.tile_size**2, table.shape[1] - _FEATS)
+        out = table.new_zeros(bins.tiles_x * bins.tiles_y, table.shape[1] - _FEATS, bins.tile_size**2)
         weight_sum = table.new_zeros(n + 1)
         pixel_count = torch.zeros(n + 1, dtype=torch.int32, device=table.device)
         for chunk in chunks:
             ca = _chunk_alpha(chunk, table, bins, width, height, settings)
-            weights = _blend_weights(ca.alpha, settings.transmittance_min).flatten(1, 2)  # [nt, P, K]
-            out[chunk.tiles] = torch.bmm(weights, ca.params[..., _FEATS:])
+            blend = _blend(ca.alpha, settings.transmittance_min)
+            weights = blend.weights.flatten(1, 2)  # [nt, P, K]
+            out[chunk.tiles] = torch.bmm(ca.params[..., _FEATS:].transpose(1, 2), weights.transpose(1, 2))
             flat_ids = chunk.gids.flatten()
             weight_sum.index_add_(0, flat_ids, weights.sum(1).flatten())
-            pixel_count.index_add_(0, flat_ids, (weights > 0).sum(1, dtype=torch.int32).flatten())
+            blended = ca.hit.mul_(blend.kept).sum((1, 2)).to(torch.int32)
+            pixel_count.index_add_(0, flat_ids, blended.flatten())
 
         ctx.save_for_backward(table)
         ctx.plan = (bins, chunks, width, height, settings, feats.shape[1])
@@ -233,22 +263,23 @@ class _CompositeTiles(torch.autograd.Function):
 
 
 def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) -> Tensor:
-    """[nt, K, 7+F] gradients of a chunk's packed rows given [nt, P, F+1] output gradients.
+    """[nt, K, 7+F] gradients of a chunk's packed rows given [nt, F+1, P] output gradients.
 
     The 3DGS backward, vectorised. With w_i = alpha_i T_i and g_i = dL/dout . f_i per pixel:
     dL/dalpha_i = T_i g_i - S_i / (1 - alpha_i) with S_i = sum_{j > i} w_j g_j, and
     alpha_i = opacity_i exp(power_i) gives dL/dpower_i = alpha_i dL/dalpha_i (0 where clamped).
     """
     alpha, dx, dy, params = ca.alpha, ca.dx, ca.dy, ca.params
-    weights = _blend_weights(alpha, settings.transmittance_min)
+    blend = _blend(alpha, settings.transmittance_min)
+    weights = blend.weights
     feats = params[..., _FEATS:]
-    grad_feats = torch.bmm(weights.flatten(1, 2).transpose(1, 2), grad_out)
+    grad_feats = torch.bmm(grad_out, weights.flatten(1, 2)).transpose(1, 2)
 
-    weighted = torch.bmm(grad_out, feats.transpose(1, 2)).view_as(alpha).mul_(weights)  # w_i g_i
+    weighted = torch.bmm(grad_out.transpose(1, 2), feats.transpose(1, 2)).view_as(alpha).mul_(weights)  # w_i g_i
     behind = torch.cumsum(weighted, dim=-1)
     behind = behind[..., -1:] - behind  # S_i
-    grad_power = torch.addcdiv(weighted, behind.mul_(alpha), 1.0 - alpha, value=-1.0)
-    grad_power.masked_fill_(alpha >= settings.alpha_max, 0.0)
+    grad_power = torch.addcdiv(weighted, behind.mul_(alpha), blend.transmit, value=-1.0)
+    grad_power.mul_(_float_mask(torch.lt, alpha, settings.alpha_max))
 
     # Moments of dL/dpower over the tile's pixels, via separable row / column sums.
     per_col = grad_power.sum(1)  # [nt, T, K], summed over rows
