@@ -6,6 +6,7 @@ and registers a `DataManagerSpec` under the entry-point group `uw3dgs.datamanage
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
