@@ -31,8 +31,8 @@ class Camera:
     def to(self, device: torch.device | str) -> Camera:
         return Camera(self.viewmat.to(device), self.K.to(device), self.width, self.height, self.name)
 
-    def ray_norms(self) -> Tensor:
-        """|K^-1 (u, v, 1)| per pixel centre, [H, W]: converts a z-depth to a distance along the ray."""
+    def camera_rays(self) -> Tensor:
+        """K^-1 (u, v, 1) for every pixel centre (u + 0.5, v + 0.5), [H, W, 3] in camera coordinates."""
         device, dtype = self.K.device, self.K.dtype
         v, u = torch.meshgrid(
             torch.arange(self.height, device=device, dtype=dtype) + 0.5,
@@ -41,4 +41,13 @@ class Camera:
         )
         x = (u - self.K[0, 2]) / self.K[0, 0]
         y = (v - self.K[1, 2]) / self.K[1, 1]
-        return torch.sqrt(x * x + y * y + 1.0)
+        return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+
+    def ray_norms(self) -> Tensor:
+        """|K^-1 (u, v, 1)| per pixel centre, [H, W]: converts a z-depth to a distance along the ray."""
+        return self.camera_rays().norm(dim=-1)
+
+    def ray_directions(self) -> Tensor:
+        """Unit world-space direction of every pixel centre's ray, [H, W, 3] (origin: `center`)."""
+        d_world = self.camera_rays() @ self.viewmat[:3, :3].to(self.K.dtype)  # R^T d, as row vectors
+        return torch.nn.functional.normalize(d_world, dim=-1)

@@ -40,7 +40,7 @@ def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True
                 write_image(save_dir / key / f"{stem}.png", image)
             write_image(save_dir / "compare" / f"{stem}.png", image_grid(list(images.values()), ncols=len(images)))
     model.train(was_training)
-    summary: dict[str, float] = {}
+    summary: dict[str, float] = dict(model.get_eval_summary(datamanager.scene))
     for key in (per_image[0].keys() if per_image else []):
         if key == "image":
             continue

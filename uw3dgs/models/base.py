@@ -54,6 +54,10 @@ class Model(nn.Module):
         pred = outputs["rgb"].detach().clamp(0, 1)
         return {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
 
+    def get_eval_summary(self, scene: SceneData) -> dict[str, float]:
+        """Whole-model numbers for evaluation (not per view), e.g. the learned medium against ground truth."""
+        return {}
+
     def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
         """Named [H, W, 3] images in [0, 1] for TensorBoard and the saved renders."""
         return {}

@@ -1,0 +1,167 @@
+"""The learnable underwater medium: attenuation beta_D and backscatter beta_B as RGB fields over the
+scene box, each a TensoRF vector-matrix (VM) decomposition, and the veiling light B_inf.
+
+Image formation (Akkaynak & Treibitz 2018, the paper's Eq. scattering_4), per pixel with range z:
+    I_UW = I_UR exp(-beta_D z) + B_inf (1 - exp(-beta_B z)).
+beta is per unit of the dataset's own world units; a pixel's beta is the mean of the field at S
+points along its ray from the camera to the surface (midpoint rule; S = 1 is the paper's single
+query at half the range), which is the Beer-Lambert integral for a medium that varies along the ray.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.registry import FieldSpec
+
+RGB = tuple[float, float, float]
+# (plane axes, line axis) of TensoRF's three VM modes: XY x Z, XZ x Y, YZ x X
+VM_MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
+
+
+def softplus_inverse(y: Tensor) -> Tensor:
+    return y + torch.log(-torch.expm1(-y))
+
+
+@dataclass(frozen=True)
+class MediumGridConfig(InstantiateConfig):
+    _target: Target = target(lambda: MediumGrid)
+    resolution: int = 64
+    """Grid size G per axis of every plane and line."""
+    components: int = 16
+    """VM components R per mode."""
+    beta_prior: RGB = (0.1, 0.15, 0.2)
+    """Initial value of beta_D and beta_B (R, G, B) per dataset unit; L_beta pulls toward it."""
+    b_inf_init: RGB = (0.5, 0.5, 0.5)
+    """Initial veiling light B_inf (RGB)."""
+    init_std: float = 0.1
+    """Standard deviation of the random VM factors (their basis starts at zero, so beta starts flat)."""
+    ray_samples: int = 1
+    """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
+    box_padding: float = 0.1
+    """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
+    learn_beta: bool = True
+    """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
+
+
+class VMField(nn.Module):
+    """An RGB field f(x) = softplus(W [plane_m(x) line_m(x)]_m + b) over [-1, 1]^3 (trilinear reads)."""
+
+    def __init__(self, resolution: int, components: int, init: RGB, init_std: float):
+        super().__init__()
+        g, r = resolution, components
+        self.planes = nn.Parameter(init_std * torch.randn(3, r, g, g))
+        self.lines = nn.Parameter(init_std * torch.randn(3, r, g))
+        self.basis = nn.Parameter(torch.zeros(3, 3 * r))
+        self.bias = nn.Parameter(softplus_inverse(torch.tensor(init, dtype=torch.float32)))
+
+    def features(self, x: Tensor) -> Tensor:
+        """[N, 3] points in [-1, 1] -> [N, 3R] products of plane (bilinear) and line (linear) reads."""
+        feats = []
+        for m, ((a, b), c) in enumerate(VM_MODES):
+            # grid_sample's grid is (x, y) = (width index, height index): planes are [R, G(axis a), G(axis b)]
+            plane_grid = torch.stack([x[:, b], x[:, a]], dim=-1).view(1, -1, 1, 2)
+            plane = F.grid_sample(self.planes[m][None], plane_grid, align_corners=True).view(-1, x.shape[0])
+            line_grid = torch.stack([torch.zeros_like(x[:, c]), x[:, c]], dim=-1).view(1, -1, 1, 2)
+            line = F.grid_sample(self.lines[m][None, :, :, None], line_grid, align_corners=True).view(-1, x.shape[0])
+            feats.append((plane * line).T)
+        return torch.cat(feats, dim=-1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.softplus(self.features(x) @ self.basis.T + self.bias)
+
+    def dense_features(self) -> Tensor:
+        """The full [3R, G, G, G] feature grid the factors describe (for tests and inspection)."""
+        out = []
+        for m, ((a, b), c) in enumerate(VM_MODES):
+            plane, line = self.planes[m], self.lines[m]  # [R, G, G] over (a, b), [R, G] over c
+            grid = torch.einsum("rij,rk->rijk", plane, line)  # axes (a, b, c)
+            order = [0] + [1 + (a, b, c).index(axis) for axis in range(3)]
+            out.append(grid.permute(*order))
+        return torch.cat(out, dim=0)
+
+    def factor_norm(self) -> Tensor:
+        return self.planes.square().sum() + self.lines.square().sum()
+
+
+class MediumGrid(nn.Module):
+    """beta_D, beta_B fields over the scene box, B_inf, and the image formation they define."""
+
+    def __init__(self, config: MediumGridConfig, box_min: Tensor, box_max: Tensor):
+        super().__init__()
+        self.config = config
+        self.register_buffer("box_min", box_min.float().clone())
+        self.register_buffer("box_max", box_max.float().clone())
+        args = (config.resolution, config.components, config.beta_prior, config.init_std)
+        self.beta_d = VMField(*args)
+        self.beta_b = VMField(*args)
+        self.b_inf = nn.Parameter(torch.tensor(config.b_inf_init, dtype=torch.float32))
+        self.register_buffer("beta_prior", torch.tensor(config.beta_prior, dtype=torch.float32))
+        if not config.learn_beta:
+            self.beta_d.requires_grad_(False)
+            self.beta_b.requires_grad_(False)
+
+    @classmethod
+    def around(cls, config: MediumGridConfig, points: Tensor, camera_centers: Tensor) -> MediumGrid:
+        """A medium whose box holds the cameras and (robustly) the initial points."""
+        lo = torch.quantile(points.float(), 0.01, dim=0) if len(points) else camera_centers.min(0).values
+        hi = torch.quantile(points.float(), 0.99, dim=0) if len(points) else camera_centers.max(0).values
+        lo = torch.minimum(lo, camera_centers.min(0).values)
+        hi = torch.maximum(hi, camera_centers.max(0).values)
+        pad = (hi - lo).clamp_min(1e-6) * config.box_padding
+        return cls(config, lo - pad, hi + pad)
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        groups = {"medium_b_inf": [self.b_inf]}
+        if self.config.learn_beta:
+            groups["medium_beta"] = [*self.beta_d.parameters(), *self.beta_b.parameters()]
+        return groups
+
+    def normalize(self, x: Tensor) -> Tensor:
+        return ((x - self.box_min) / (self.box_max - self.box_min) * 2 - 1).clamp(-1, 1)
+
+    def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(beta_D, beta_B) at world points [N, 3], each [N, 3]."""
+        u = self.normalize(x)
+        return self.beta_d(u), self.beta_b(u)
+
+    def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean of beta_D and beta_B over S midpoint samples along rays origin + t dirs, t in [0, range]."""
+        s = self.config.ray_samples
+        t = (torch.arange(s, device=dirs.device, dtype=dirs.dtype) + 0.5) / s  # [S]
+        points = origin + dirs[:, None, :] * (ranges[:, None, None] * t[None, :, None])  # [P, S, 3]
+        beta_d, beta_b = self.betas(points.reshape(-1, 3))
+        return beta_d.view(-1, s, 3).mean(dim=1), beta_b.view(-1, s, 3).mean(dim=1)
+
+    def regularizer(self, points: Tensor, weights: Tensor | None = None) -> Tensor:
+        """L_beta: weighted pull of both fields toward beta_prior at `points`, plus 0.001 x VM factor norms."""
+        beta_d, beta_b = self.betas(points)
+        dev = (beta_d - self.beta_prior).square().sum(-1) + (beta_b - self.beta_prior).square().sum(-1)
+        pull = dev.mean() if weights is None else (weights * dev).mean()
+        return pull + 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
+
+
+def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, far_range: float,
+                          beta_d: Tensor, beta_b: Tensor, beta_b_far: Tensor, b_inf: Tensor,
+                          dataset_scale: float) -> dict[str, Tensor]:
+    """The formation model for one view.
+
+    radiance [H, W, 3] = sum_i w_i c_i (no background), alpha [H, W] its coverage, ranges [H, W] the
+    expected range of the covered part (world units), beta_* [H, W, 3]. The uncovered part (1 - alpha)
+    sees open water up to `far_range`. Exponents use dataset units (range x dataset_scale).
+    """
+    z = ranges[..., None] * dataset_scale
+    attenuation = torch.exp(-beta_d * z)
+    a = alpha[..., None]
+    open_water = 1 - torch.exp(-beta_b_far * far_range * dataset_scale)
+    backscatter = b_inf * (a * (1 - torch.exp(-beta_b * z)) + (1 - a) * open_water)
+    return {"uwi": radiance * attenuation + backscatter, "attenuation": attenuation, "backscatter": backscatter}
+
+
+field_spec = FieldSpec("medium-grid", "Underwater medium: beta_D, beta_B as VM-decomposed RGB grids, and B_inf",
+                       MediumGridConfig())

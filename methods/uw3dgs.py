@@ -1,0 +1,199 @@
+"""`uw3dgs`: 3DGS plus the learnable underwater image formation module (UW-3DGS, the paper), and its
+ablations as configs of the same model.
+
+Physics-Aware Uncertainty Pruning (PAUP) is not part of this model yet: until it lands, every
+Gaussian's uncertainty U_i is 0 and its physics-aware uncertainty score PUS_i is 1, which is exactly
+what L_beta and L_z reduce to without the PAUP branch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from uw3dgs.cameras import Camera
+from uw3dgs.config import Target, target
+from uw3dgs.data.datamanager import Batch
+from uw3dgs.data.scene import SceneData
+from uw3dgs.engine.config import TrainConfig
+from uw3dgs.engine.optimizers import ParamGroupConfig
+from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_image
+from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
+from uw3dgs.metrics.image import psnr, ssim
+from uw3dgs.registry import MethodSpec
+from uw3dgs.render import rasterize
+from uw3dgs.utils.visualize import depth_to_image
+
+
+@dataclass(frozen=True)
+class UW3DGSModelConfig(GaussianSplattingModelConfig):
+    _target: Target = target(lambda: UW3DGSModel)
+    medium: MediumGridConfig = field(default_factory=MediumGridConfig)
+    use_medium: bool = True
+    """False renders plain 3DGS (the no-medium ablation): the Gaussians must explain the water themselves."""
+    beta_loss_weight: float = 0.05
+    """Weight of L_beta (pull of beta toward beta_prior at the Gaussian centres + VM factor norms)."""
+    beta_loss_samples: int = 4096
+    """Gaussian centres drawn per step to estimate L_beta's mean over all centres."""
+    depth_loss_weight: float = 0.05
+    """Weight of L_z = mean_i (1 - U_i) |z(p_i) - zhat_i| over visible Gaussians, in units of the median depth."""
+
+
+class UW3DGSModel(GaussianSplattingModel):
+    config: UW3DGSModelConfig
+
+    def __init__(self, config: UW3DGSModelConfig, scene: SceneData, train_indices: list[int]):
+        super().__init__(config, scene, train_indices)
+        self.far_range = float(scene.far)
+        self.dataset_scale = float(scene.dataset_scale)
+        self.medium: MediumGrid | None = None
+        if config.use_medium:
+            centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
+            self.medium = MediumGrid.around(config.medium, scene.points, centers)
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        groups = super().param_groups()
+        if self.medium is not None:
+            groups.update(self.medium.param_groups())
+        return groups
+
+    def get_outputs(self, camera: Camera) -> dict[str, Any]:
+        means, scales, quats, opacities = self.gaussians.activated()
+        colors = self.gaussians.colors(camera.center)
+        out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
+        if self.training and out.means2d.requires_grad:
+            out.means2d.retain_grad()
+        covered = out.alpha > 1e-4
+        depth = torch.where(covered, out.depth / out.alpha.clamp_min(1e-4), torch.zeros_like(out.depth))
+        ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
+        outputs: dict[str, Any] = {
+            "uri": out.render, "alpha": out.alpha, "depth": depth, "range": ranges, "means2d": out.means2d,
+            "radii": out.radii, "raster": out, "image_size": (camera.width, camera.height),
+            "means": means, "camera_center": camera.center}
+        if self.medium is None:
+            outputs["rgb"] = out.render + (1.0 - out.alpha[..., None]) * self.background(means.device)
+            return outputs
+        dirs = camera.ray_directions().reshape(-1, 3)
+        origin = camera.center.to(dirs.dtype)
+        beta_d, beta_b = self.medium.ray_betas(origin, dirs, ranges.reshape(-1))
+        _, beta_b_far = self.medium.ray_betas(origin, dirs, torch.full_like(ranges.reshape(-1), self.far_range))
+        shape = (*ranges.shape, 3)
+        formed = form_underwater_image(out.render, out.alpha, ranges, self.far_range, beta_d.view(shape),
+                                       beta_b.view(shape), beta_b_far.view(shape), self.medium.b_inf,
+                                       self.dataset_scale)
+        outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
+                       beta_d=beta_d.view(shape), beta_b=beta_b.view(shape))
+        return outputs
+
+    def depth_consistency(self, outputs: dict[str, Any]) -> Tensor:
+        """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|."""
+        visible = outputs["radii"] > 0
+        width, height = outputs["image_size"]
+        pix = outputs["means2d"][visible].detach().floor().long()
+        inside = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+        if not bool(inside.any()):
+            return outputs["range"].sum() * 0.0
+        pix = pix[inside]
+        rendered = outputs["range"][pix[:, 1], pix[:, 0]]
+        own = (outputs["means"][visible][inside] - outputs["camera_center"]).norm(dim=-1)
+        scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
+        return ((rendered - own).abs() / scale).mean()
+
+    def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
+        losses = super().get_loss_dict(outputs, batch, step)
+        c = self.config
+        if self.medium is not None and c.beta_loss_weight > 0:
+            means = self.gaussians.means.detach()
+            if len(means) > c.beta_loss_samples:  # an unbiased estimate of the mean over all centres
+                means = means[torch.randint(len(means), (c.beta_loss_samples,), device=means.device)]
+            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means)
+        if c.depth_loss_weight > 0:
+            losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs)
+        return losses
+
+    def medium_summary(self) -> dict[str, Tensor]:
+        """Learned B_inf and the mean of beta_D, beta_B over the Gaussian centres (per channel)."""
+        if self.medium is None:
+            return {}
+        with torch.no_grad():
+            beta_d, beta_b = self.medium.betas(self.gaussians.means)
+        return {"b_inf": self.medium.b_inf.detach(), "beta_d": beta_d.mean(0), "beta_b": beta_b.mean(0)}
+
+    def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        """Adds B_inf and this view's ray-averaged beta_D, beta_B (cheap: already computed for rendering)."""
+        metrics = super().get_metrics_dict(outputs, batch)
+        if self.medium is None:
+            return metrics
+        values = {"b_inf": self.medium.b_inf.detach(), "beta_d": outputs["beta_d"].detach().mean((0, 1)),
+                  "beta_b": outputs["beta_b"].detach().mean((0, 1))}
+        for name, value in values.items():
+            for channel, v in zip("rgb", value.tolist(), strict=True):
+                metrics[f"medium/{name}_{channel}"] = v
+        return metrics
+
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        metrics = super().get_eval_metrics(outputs, batch)
+        if "clean_image" in batch and self.medium is not None:
+            uri = outputs["uri"].detach().clamp(0, 1)
+            metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
+            metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
+        if "range" in batch:
+            truth = batch["range"]
+            valid = torch.isfinite(truth) & (outputs["alpha"] > 0.5)
+            if bool(valid.any()):
+                metrics["depth_abs_rel"] = float(((outputs["range"][valid] - truth[valid]).abs()
+                                                  / truth[valid]).mean())
+        return metrics
+
+    def get_eval_summary(self, scene: SceneData) -> dict[str, float]:
+        """Error of the learned medium against the ground truth (synthetic scenes), relative, per channel."""
+        learned = self.medium_summary()
+        out: dict[str, float] = {}
+        for name, value in learned.items():
+            for channel, v in zip("rgb", value.tolist(), strict=True):
+                out[f"{name}_{channel}"] = v
+        if scene.gt is None or not learned:
+            return out
+        truth_keys = {"b_inf": "B_inf", "beta_d": "beta_D", "beta_b": "beta_B"}
+        for name, key in truth_keys.items():
+            truth = torch.tensor(scene.gt.medium[key], dtype=torch.float32)
+            rel = ((learned[name].cpu() - truth).abs() / truth.abs().clamp_min(1e-6))
+            out[f"{name}_rel_error"] = float(rel.max())
+        return out
+
+    def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
+        images = {"gt": batch["image"], "uwi": outputs["rgb"].clamp(0, 1), "uri": outputs["uri"].clamp(0, 1),
+                  "depth": depth_to_image(outputs["range"], outputs["alpha"])}
+        if "attenuation" in outputs:
+            images["attenuation"] = outputs["attenuation"].clamp(0, 1)
+            images["backscatter"] = outputs["backscatter"].clamp(0, 1)
+        if "clean_image" in batch:
+            images["gt_clean"] = batch["clean_image"]
+        return images
+
+
+def uw3dgs_optimizers() -> dict[str, ParamGroupConfig]:
+    """The paper's rates: 0.05 opacity, 0.005 scaling, 0.001 rotation, 0.001 medium; 3DGS elsewhere."""
+    return {**gaussian_optimizers(opacity_lr=0.05, scaling_lr=0.005, rotation_lr=0.001),
+            "medium_beta": ParamGroupConfig(0.001), "medium_b_inf": ParamGroupConfig(0.001)}
+
+
+def _method(name: str, description: str, **model_overrides: Any) -> MethodSpec:
+    model = dataclasses.replace(UW3DGSModelConfig(), **model_overrides)
+    config = TrainConfig(method_name=name, model=model, optimizers=uw3dgs_optimizers(), max_num_iterations=40000)
+    return MethodSpec(name, description, config)
+
+
+method = _method("uw3dgs", "UW-3DGS: 3DGS + learnable underwater image formation (VM-grid beta_D, beta_B, B_inf), "
+                 "L_beta and L_z (PAUP pending).")
+no_medium = _method("uw3dgs-no-medium", "Ablation: plain 3DGS rendering, no L_beta, no L_z.",
+                    use_medium=False, beta_loss_weight=0.0, depth_loss_weight=0.0)
+no_lbeta = _method("uw3dgs-no-lbeta", "Ablation: beta fixed at beta_prior (B_inf still learned), no L_beta.",
+                   medium=MediumGridConfig(learn_beta=False), beta_loss_weight=0.0)
+# with U_i = 0 until PAUP lands, depth is composited without (1 - U) weights in every variant
+no_lz = _method("uw3dgs-no-lz", "Ablation: no L_z (and, once PAUP lands, depth without the (1 - U) weight).",
+                depth_loss_weight=0.0)
