@@ -91,8 +91,10 @@ def test_third_party_plugin_method_appears(fresh_venv, tmp_path):
         [project.entry-points."uw3dgs.methods"]
         demo = "uw3dgs_plugin_demo:method"
     """))
-    run([str(fresh_venv / "bin" / "python"), "-m", "pip", "install", "--no-deps", "--no-index",
-         "--no-build-isolation", str(plugin)])
+    # built with this environment's setuptools, installed into the fresh venv as a wheel
+    run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(plugin)])
+    (plugin_wheel,) = tmp_path.glob("uw3dgs_plugin_demo-*.whl")
+    run([str(fresh_venv / "bin" / "python"), "-m", "pip", "install", "--no-deps", "--no-index", str(plugin_wheel)])
     uw_train = str(fresh_venv / "bin" / "uw-train")
     assert "demo-plugin-method" in run([uw_train, "--help"], cwd="/").stdout
     assert "(default: 7)" in run([uw_train, "demo-plugin-method", "--help"], cwd="/").stdout
