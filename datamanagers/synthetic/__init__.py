@@ -9,19 +9,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from uw3dgs.config import Target, target
+from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.data.datamanager import DataManager, DataManagerConfig
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.seathru_layout import read_seathru_layout
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
 from uw3dgs.registry import DataManagerSpec
-
-
-def default_cache_dir() -> Path:
-    """$UW3DGS_CACHE, else $XDG_CACHE_HOME/uw3dgs, else ~/.cache/uw3dgs."""
-    if os.environ.get("UW3DGS_CACHE"):
-        return Path(os.environ["UW3DGS_CACHE"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "uw3dgs"
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -27,6 +27,9 @@ class DataManagerConfig(InstantiateConfig):
     _target: Target = target(lambda: DataManager)
     llffhold: int = 8
     """Every llffhold-th view (sorted by name, index % llffhold == 0) is held out for testing; 0 = none."""
+
+    generic: ClassVar[bool] = False
+    """A catch-all layout (e.g. any COLMAP folder): when a specific datamanager also reads `--data`, it wins."""
 
     @classmethod
     def can_read(cls, path: Path) -> bool:
@@ -72,12 +75,20 @@ def downscale_scene(scene: SceneData, factor: int) -> SceneData:
 class DataManager:
     """Serves one random training view per step (a fresh permutation each epoch, as 3DGS does)."""
 
+    downscales_on_load: ClassVar[bool] = False
+    """True when `load_scene` already returns the scene at 1/`self.downscale_factor` (e.g. through an image
+    cache); the base class then leaves it as it is instead of downscaling it again."""
+
     def __init__(self, config: DataManagerConfig, data: Path | None, downscale_factor: int = 1,
                  device: str | torch.device = "cpu", seed: int = 0):
+        if downscale_factor < 1:
+            raise ValueError(f"--downscale-factor must be a positive integer, got {downscale_factor}")
         self.config = config
         self.data = data
         self.device = torch.device(device)
-        self.scene = downscale_scene(self.load_scene(data), downscale_factor)
+        self.downscale_factor = downscale_factor
+        scene = self.load_scene(data)
+        self.scene = scene if self.downscales_on_load else downscale_scene(scene, downscale_factor)
         self.train_indices, self.test_indices = split_indices(len(self.scene.image_names), config.llffhold)
         if not self.train_indices:
             raise ValueError(f"{data}: no training views left after holding out every {config.llffhold}-th view")
@@ -135,6 +146,8 @@ class AutoDataManagerConfig(DataManagerConfig):
             if not found:
                 raise ValueError(f"--data {data}: no datamanager recognises this folder "
                                  f"(known: {', '.join(DATAMANAGERS)}); see the README's data layouts")
+            if len(found) > 1 and sum(not type(s.config).generic for s in found) == 1:
+                found = [s for s in found if not type(s.config).generic]
             if len(found) > 1:
                 names = ", ".join(s.name for s in found)
                 raise ValueError(f"--data {data} matches several datamanagers ({names}); name one after the "

@@ -43,6 +43,9 @@ class SceneData:
     dataset_scale: float = 1.0
     """Scene normalisation: world = (dataset - dataset_center) / dataset_scale. A distance d in world
     units is d * dataset_scale dataset units (the medium's beta is per dataset unit)."""
+    gt_points: Tensor | None = None
+    """[M, 3] ground-truth surface points (UWBundle's groundtruth.ply) for geometry evaluation, in the
+    ground-truth file's own frame and units: not the world frame (see docs/uwbundle.md)."""
 
 
 def scene_extent(cameras: list[Camera]) -> float:
