@@ -8,5 +8,5 @@ bash scripts/install.sh
 # glibc returns big buffers to the OS after every step, which slows PyTorch on CPU 2-4x
 export MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000
 run=demo-$(date +%Y%m%d-%H%M%S)
-uw-train 3dgs --max-num-iterations 3000 --timestamp "$run" "$@"
+uw-train 3dgs --max-num-iterations 2000 --timestamp "$run" "$@"
 uw-eval "outputs/synthetic/3dgs/$run/config.yml"
