@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+from uw3dgs.render.cpu_backend import rasterize_cpu
 from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
 
@@ -81,3 +82,6 @@ def rasterize(
 
 
 register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), priority=0)
+# Compiled C++/OpenMP backend, the default on CPU: built on first use (falls back to the reference with one
+# warning if the build fails).
+register_backend("cpu", rasterize_cpu, devices=("cpu",), priority=10)

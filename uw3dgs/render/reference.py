@@ -19,8 +19,8 @@ from torch.autograd.function import once_differentiable
 from uw3dgs.render.projection import Projection, project_gaussians
 from uw3dgs.render.types import RasterOutput, RasterSettings
 
-CHUNK_ELEMENTS = 1 << 19
-"""Tiles x Gaussians-per-tile x pixels-per-tile processed in one vectorised step (bounds memory)."""
+CHUNK_ELEMENTS = 1 << 20
+"""Tiles x Gaussians-per-tile x pixels-per-tile per vectorised step: ~4 MB per float32 temporary."""
 EXP_FLOOR = -80.0
 """exp() arguments are clamped here: far below any alpha_min, and exp stays a normal float32."""
 
@@ -48,6 +48,12 @@ class _Chunk:
     """[nt] tile indices (row-major over the tile grid)."""
     gids: Tensor
     """[nt, K] front-to-back Gaussian indices; padding points at the zero-opacity dummy row N."""
+    px: Tensor
+    """[nt, T] pixel-centre x of the tiles' columns."""
+    py: Tensor
+    """[nt, T] pixel-centre y of the tiles' rows."""
+    threshold: Tensor
+    """[nt, T, T, 1] alpha_min per pixel, infinite where the tile sticks out of the image."""
 
 
 def _pixel_span(centre: Tensor, radius: Tensor, size: int) -> tuple[Tensor, Tensor]:
@@ -86,9 +92,12 @@ def bin_gaussians(proj: Projection, width: int, height: int, tile_size: int) -> 
     )
 
 
-def _plan_chunks(bins: TileBins, pad_id: int, budget: int) -> list[_Chunk]:
-    """Group non-empty tiles by decreasing list length so each chunk pads little and stays under budget."""
+def _plan_chunks(
+    bins: TileBins, pad_id: int, width: int, height: int, alpha_min: float, dtype: torch.dtype
+) -> list[_Chunk]:
+    """Group non-empty tiles by decreasing list length: little padding, each chunk within CHUNK_ELEMENTS."""
     pixels = bins.tile_size**2
+    px, py, threshold = _tile_pixels(bins, width, height, alpha_min, dtype)
     counts, order = torch.sort(bins.tile_counts, descending=True)
     n_nonempty = int((counts > 0).sum())
     counts_list = counts[:n_nonempty].tolist()
@@ -96,22 +105,30 @@ def _plan_chunks(bins: TileBins, pad_id: int, budget: int) -> list[_Chunk]:
     start = 0
     while start < n_nonempty:
         k = counts_list[start]
-        stop = min(n_nonempty, start + max(1, budget // (k * pixels)))
+        stop = min(n_nonempty, start + max(1, CHUNK_ELEMENTS // (k * pixels)))
         tiles = order[start:stop]
         slot = torch.arange(k, device=tiles.device)
         idx = bins.tile_starts[tiles, None] + slot
         padding = slot >= bins.tile_counts[tiles, None]
         gids = bins.gauss_ids[idx.clamp(max=len(bins.gauss_ids) - 1)].masked_fill(padding, pad_id)
-        chunks.append(_Chunk(tiles=tiles, gids=gids))
+        chunks.append(_Chunk(tiles, gids, px[tiles], py[tiles], threshold[tiles]))
         start = stop
     return chunks
 
 
-def _pixel_centres(tiles: Tensor, bins: TileBins, along_x: bool, dtype: torch.dtype) -> Tensor:
-    """[nt, T] pixel-centre coordinates of the tiles' columns (along_x) or rows."""
-    tile_coord = tiles % bins.tiles_x if along_x else tiles // bins.tiles_x
-    pixel = tile_coord[:, None] * bins.tile_size + torch.arange(bins.tile_size, device=tiles.device)
-    return pixel.to(dtype) + 0.5
+def _tile_pixels(
+    bins: TileBins, width: int, height: int, alpha_min: float, dtype: torch.dtype
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per tile: column centres x [tiles, T], row centres y [tiles, T], alpha_min per pixel [tiles, T, T, 1]."""
+    device = bins.gauss_ids.device
+    offsets = torch.arange(bins.tile_size, device=device)
+    x = (torch.arange(bins.tiles_x, device=device)[:, None] * bins.tile_size + offsets).repeat(bins.tiles_y, 1)
+    y = (torch.arange(bins.tiles_y, device=device)[:, None] * bins.tile_size + offsets).repeat_interleave(
+        bins.tiles_x, dim=0
+    )
+    inside = (y < height)[:, :, None] & (x < width)[:, None, :]
+    threshold = torch.where(inside, alpha_min, torch.inf).to(dtype)[..., None]
+    return x.to(dtype) + 0.5, y.to(dtype) + 0.5, threshold
 
 
 def _pack(means2d: Tensor, conics: Tensor, opacities: Tensor, feats: Tensor) -> Tensor:
@@ -144,26 +161,19 @@ class _ChunkAlpha:
     """[nt, K, 7+F] the Gaussians' packed rows."""
 
 
-def _chunk_alpha(
-    chunk: _Chunk, table: Tensor, bins: TileBins, width: int, height: int, settings: RasterSettings
-) -> _ChunkAlpha:
+def _chunk_alpha(chunk: _Chunk, table: Tensor, alpha_max: float) -> _ChunkAlpha:
     """Evaluate every padded (tile, Gaussian) pair at every pixel of its tile."""
     params = table[chunk.gids]
-    px = _pixel_centres(chunk.tiles, bins, True, table.dtype)
-    py = _pixel_centres(chunk.tiles, bins, False, table.dtype)
-    dx = px[:, :, None] - params[:, None, :, 0]
-    dy = py[:, :, None] - params[:, None, :, 1]
+    dx = chunk.px[:, :, None] - params[:, None, :, 0]
+    dy = chunk.py[:, :, None] - params[:, None, :, 1]
     a, b, c, opacity = (params[:, None, :, i] for i in range(2, 6))
     log_opacity = torch.log(opacity)  # folded into the exponent: saves a full-size multiply
     # log(opacity) + power[y, x], power = -a dx^2/2 - c dy^2/2 - b dx dy, from separable row / column terms.
     exponent = (-0.5 * c * dy * dy + log_opacity)[:, :, None] + (-0.5 * a * dx * dx)[:, None]
     exponent.addcmul_((-b * dy)[:, :, None], dx[:, None])
-    alpha = exponent.clamp(min=EXP_FLOOR).exp_().clamp_(max=settings.alpha_max)
-    # alpha_min per pixel, infinite where the tile sticks out of the image.
-    inside = (py < height)[:, :, None] & (px < width)[:, None, :]
-    threshold = torch.where(inside, settings.alpha_min, torch.inf).to(table.dtype)
+    alpha = exponent.clamp(min=EXP_FLOOR).exp_().clamp_(max=alpha_max)
     hit = _float_mask(torch.le, exponent, log_opacity[:, None], out=exponent)  # power <= 0
-    hit.mul_(_float_mask(torch.ge, alpha, threshold[..., None]))
+    hit.mul_(_float_mask(torch.ge, alpha, chunk.threshold))
     return _ChunkAlpha(alpha=alpha.mul_(hit), hit=hit, dx=dx, dy=dy, params=params)
 
 
@@ -227,12 +237,12 @@ class _CompositeTiles(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, feats, bins, width, height, settings):
         n = len(means2d)
         table = _pack(means2d, conics, opacities, feats)
-        chunks = _plan_chunks(bins, n, CHUNK_ELEMENTS)
+        chunks = _plan_chunks(bins, n, width, height, settings.alpha_min, table.dtype)
         out = table.new_zeros(bins.tiles_x * bins.tiles_y, table.shape[1] - _FEATS, bins.tile_size**2)
         weight_sum = table.new_zeros(n + 1)
         pixel_count = torch.zeros(n + 1, dtype=torch.int32, device=table.device)
         for chunk in chunks:
-            ca = _chunk_alpha(chunk, table, bins, width, height, settings)
+            ca = _chunk_alpha(chunk, table, settings.alpha_max)
             blend = _blend(ca.alpha, settings.transmittance_min)
             weights = blend.weights.flatten(1, 2)  # [nt, P, K]
             out[chunk.tiles] = torch.bmm(ca.params[..., _FEATS:].transpose(1, 2), weights.transpose(1, 2))
@@ -242,7 +252,7 @@ class _CompositeTiles(torch.autograd.Function):
             pixel_count.index_add_(0, flat_ids, blended.flatten())
 
         ctx.save_for_backward(table)
-        ctx.plan = (bins, chunks, width, height, settings, feats.shape[1])
+        ctx.plan = (bins, chunks, settings, feats.shape[1])
         weight_sum, pixel_count = weight_sum[:n], pixel_count[:n]
         ctx.mark_non_differentiable(weight_sum, pixel_count)
         return _tiles_to_image(out, bins, width, height), weight_sum, pixel_count
@@ -250,12 +260,12 @@ class _CompositeTiles(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_image, _grad_weight_sum, _grad_pixel_count):
-        bins, chunks, width, height, settings, n_feats = ctx.plan
+        bins, chunks, settings, n_feats = ctx.plan
         (table,) = ctx.saved_tensors
         grad_tiles = _image_to_tiles(grad_image, bins)
         grads = torch.zeros_like(table)
         for chunk in chunks:
-            ca = _chunk_alpha(chunk, table, bins, width, height, settings)
+            ca = _chunk_alpha(chunk, table, settings.alpha_max)
             rows = _chunk_grads(ca, grad_tiles[chunk.tiles], settings)
             grads.index_add_(0, chunk.gids.flatten(), rows.flatten(0, 1))
         grads = grads[:-1]
@@ -275,7 +285,8 @@ def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) ->
     feats = params[..., _FEATS:]
     grad_feats = torch.bmm(grad_out, weights.flatten(1, 2)).transpose(1, 2)
 
-    weighted = torch.bmm(grad_out.transpose(1, 2), feats.transpose(1, 2)).view_as(alpha).mul_(weights)  # w_i g_i
+    weighted = torch.bmm(grad_out.transpose(1, 2), feats.transpose(1, 2)).view_as(alpha)
+    weighted.mul_(weights)  # w_i g_i
     behind = torch.cumsum(weighted, dim=-1)
     behind = behind[..., -1:] - behind  # S_i
     grad_power = torch.addcdiv(weighted, behind.mul_(alpha), blend.transmit, value=-1.0)
@@ -284,7 +295,7 @@ def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) ->
     # Moments of dL/dpower over the tile's pixels, via separable row / column sums.
     per_col = grad_power.sum(1)  # [nt, T, K], summed over rows
     per_row = grad_power.sum(2)  # [nt, T, K], summed over columns
-    row_dx = (grad_power * dx[:, None]).sum(2)  # sum_x G[y, x] dx[x]
+    row_dx = grad_power.mul_(dx[:, None]).sum(2)  # sum_x G[y, x] dx[x]
     s_dx = (per_col * dx).sum(1)
     s_dy = (per_row * dy).sum(1)
     s_dx2 = (per_col * dx * dx).sum(1)

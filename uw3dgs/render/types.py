@@ -40,6 +40,11 @@ class RasterOutput:
     screen-space gradient used by densification); `radii` is the screen radius in pixels (0 = culled);
     `depths` the camera-space z; `weight_sum` the sum of the Gaussian's blending weights over the
     view's pixels and `pixel_count` the number of pixels it was blended into (both without gradient).
+
+    Shapes and types: render [H, W, C]; alpha and depth [H, W]; means2d [N, 2] in pixels, where
+    pixel (u, v) has its centre at (u + 0.5, v + 0.5) and a point projects to (fx x/z + cx, fy y/z + cy);
+    radii and pixel_count int32; depths and weight_sum in the input dtype. Nothing is composed over a
+    background: callers add (1 - alpha[..., None]) * background.
     """
 
     render: Tensor

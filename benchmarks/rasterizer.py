@@ -1,0 +1,147 @@
+"""Rasterizer backends: forward and forward+backward time and peak memory on one shared random scene.
+
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/rasterizer.py
+
+Every (backend, Gaussians, resolution, pass) runs in its own subprocess: the peak memory is the growth
+of that process's max RSS (`resource.getrusage`) over its state just before the first render (scene
+built, extension loaded), so it counts torch's allocations, which tracemalloc does not see. With the
+two malloc variables above glibc keeps freed memory instead of returning it, so RSS is a faithful
+high-water mark of the heap. Times are medians of repeated runs after one warm-up run. Speed-ups are
+against the 'torch' reference measured in the same invocation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import torch
+
+CONFIGS = [(20_000, 256), (20_000, 512), (100_000, 256), (100_000, 512)]
+
+
+def make_scene(n: int, size: int, seed: int = 0):
+    """n Gaussians in front of a camera looking down +z, realistic sizes (a few pixels to tens of pixels).
+
+    The world scene depends only on n and seed; the resolution only changes the intrinsics.
+    """
+    from uw3dgs.cameras import Camera
+
+    gen = torch.Generator().manual_seed(seed)
+
+    def uniform(lo: float, hi: float, *shape: int) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(*shape, generator=gen)
+
+    z = uniform(2.0, 10.0, n)
+    xy = uniform(-0.6, 0.6, n, 2) * z[:, None]
+    means = torch.cat([xy, z[:, None]], dim=1)
+    scales = torch.exp(uniform(math.log(0.005), math.log(0.08), n, 3))
+    quats = torch.randn(n, 4, generator=gen)
+    opacities = torch.sigmoid(uniform(-3.0, 4.0, n))
+    features = uniform(0.0, 1.0, n, 3)
+    f = 0.9 * size
+    K = torch.tensor([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]])
+    return (means, quats, scales, opacities, features), Camera(viewmat=torch.eye(4), K=K, width=size, height=size)
+
+
+def worker(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
+    from uw3dgs.render import RasterSettings, rasterize
+
+    if backend == "cpu":
+        from uw3dgs.render.cpu_backend import load_extension
+
+        if load_extension() is None:
+            return {"error": "extension did not build"}
+    inputs, camera = make_scene(n, size)
+    settings = RasterSettings(backend=backend)
+    weights = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
+
+    def once() -> None:
+        if mode == "fwd":
+            with torch.no_grad():
+                rasterize(*inputs, camera, settings)
+            return
+        leaves = [t.clone().requires_grad_(True) for t in inputs]
+        out = rasterize(*leaves, camera, settings)
+        out.means2d.retain_grad()
+        ((out.render * weights).sum() + out.alpha.sum()).backward()
+
+    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times = []
+    for i in range(repeats + 1):
+        start = time.perf_counter()
+        once()
+        if i:  # the first run is a warm-up
+            times.append(time.perf_counter() - start)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
+    return {"seconds": statistics.median(times), "peak_mib": peak / 1024, "runs": len(times)}
+
+
+def run_config(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
+    cmd = [sys.executable, __file__, "--worker", backend, str(n), str(size), mode, str(repeats)]
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+    if proc.returncode != 0:
+        return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"rc {proc.returncode}"}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument("--backends", default=None, help="comma-separated (default: every registered CPU backend)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per config (reference: max(2, this // 2))")
+    args = parser.parse_args()
+    if args.worker:
+        backend, n, size, mode, repeats = args.worker
+        print(json.dumps(worker(backend, int(n), int(size), mode, int(repeats))))
+        return
+
+    from uw3dgs.render import BACKENDS
+
+    backends = args.backends.split(",") if args.backends else [b for b, v in BACKENDS.items() if "cpu" in v.devices]
+    if "cpu" not in backends and not args.backends:
+        backends.append("cpu")  # benchmark it even while it is not registered
+    if "torch" in backends:
+        backends.remove("torch")
+    backends.insert(0, "torch")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load: {os.getloadavg()}", file=sys.stderr)
+    rows = []
+    for n, size in CONFIGS:
+        ref = {}
+        for backend in backends:
+            repeats = max(2, args.repeats // 2) if backend == "torch" else args.repeats
+            res = {mode: run_config(backend, n, size, mode, repeats) for mode in ("fwd", "fwd+bwd")}
+            if backend == "torch":
+                ref = res
+            rows.append((backend, n, size, res, ref))
+            print(backend, n, size, res, file=sys.stderr, flush=True)
+
+    print(
+        "| backend | Gaussians | resolution | fwd ms | fwd+bwd ms | speed-up fwd | speed-up fwd+bwd "
+        "| peak MiB fwd | peak MiB fwd+bwd |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for backend, n, size, res, ref in rows:
+        cells = [backend, f"{n // 1000}k", f"{size}x{size}"]
+        for mode in ("fwd", "fwd+bwd"):
+            r = res[mode]
+            cells.append("error: " + r["error"] if "error" in r else f"{1000 * r['seconds']:.1f}")
+        for mode in ("fwd", "fwd+bwd"):
+            r, b = res[mode], ref.get(mode, {})
+            ok = "seconds" in r and "seconds" in b
+            cells.append(f"{b['seconds'] / r['seconds']:.1f}x" if ok else "-")
+        for mode in ("fwd", "fwd+bwd"):
+            r = res[mode]
+            cells.append(f"{r['peak_mib']:.0f}" if "peak_mib" in r else "-")
+        print("| " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,204 @@
+"""Compiled CPU rasterizer ('cpu' backend): C++/OpenMP projection, binning, compositing and backward.
+
+The C++ source (`csrc/cpu_rasterizer.cpp`) is built the first time the backend is used, with
+`torch.utils.cpp_extension.load` (JIT, ninja + the system C++ compiler), into
+`$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`; `$TORCH_EXTENSIONS_DIR`
+overrides it); later processes reuse the build. It mirrors `reference.py` numerically: same projection,
+opacity-aware radii, (tile, depth) ordering, alpha_min / alpha_max / early-termination rules and
+exp() floor, in float32 or float64. If the build fails (no compiler, ...) the backend warns once and
+falls back to the 'torch' reference.
+
+Two autograd functions keep `means2d` an intermediate of the graph (so `retain_grad()` gives the
+screen-space gradient): projection (means, quats, scales -> means2d, conics, depths) and compositing
+(means2d, conics, opacities, features + depth -> render, depth, alpha). Both backwards are hand-written C++; gradients
+are accumulated per (tile, Gaussian) slot and reduced per Gaussian in a fixed order, so results are
+bitwise reproducible whatever the thread count.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+import warnings
+from pathlib import Path
+from types import ModuleType
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from uw3dgs.data.cache import default_cache_dir
+from uw3dgs.render.reference import rasterize_reference
+from uw3dgs.render.types import RasterOutput, RasterSettings
+
+EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
+SOURCE = Path(__file__).parent / "csrc" / "cpu_rasterizer.cpp"
+CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
+"""-ffp-contract=off: no fused multiply-adds, so results follow the reference's rounding as closely as possible."""
+
+
+def _simd_flags() -> list[str]:
+    """AVX2 when this CPU has it (x86 Linux); the build folder is per flag set, so caches never mix."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text().split()
+    except OSError:
+        return []
+    return ["-mavx2", "-mfma"] if "avx2" in flags and "fma" in flags else []
+
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+def build_directory() -> Path:
+    """Where the JIT build goes: $TORCH_EXTENSIONS_DIR, else $UW3DGS_CACHE (or ~/.cache/uw3dgs)/torch_extensions."""
+    if os.environ.get("TORCH_EXTENSIONS_DIR"):
+        root = Path(os.environ["TORCH_EXTENSIONS_DIR"])
+    else:
+        root = default_cache_dir() / "torch_extensions"
+    simd = "_avx2" if _simd_flags() else ""
+    return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}"
+
+
+def load_extension(verbose: bool = False) -> ModuleType | None:
+    """Build (first use) or load the extension; None, after one warning, if that fails."""
+    with _lock:
+        if "module" in _state:
+            return _state["module"]  # type: ignore[return-value]
+        module = None
+        start = time.perf_counter()
+        try:
+            from torch.utils import cpp_extension
+
+            directory = build_directory()
+            directory.mkdir(parents=True, exist_ok=True)
+            # torch runs `ninja` from PATH; the `ninja` wheel puts it beside this interpreter, which is not on
+            # PATH when a venv's console script is called without activating the venv
+            bin_dir = str(Path(sys.executable).parent)
+            if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
+                os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
+            if not (directory / f"{EXTENSION_NAME}.so").exists():
+                print(f"uw3dgs: building the compiled CPU rasterizer into {directory} (first use, about a minute)",
+                      file=sys.stderr, flush=True)
+            module = cpp_extension.load(
+                name=EXTENSION_NAME,
+                sources=[str(SOURCE)],
+                extra_cflags=CFLAGS + _simd_flags(),
+                extra_ldflags=["-fopenmp"],
+                build_directory=str(directory),
+                verbose=verbose,
+            )
+        except Exception as exc:  # noqa: BLE001 - any build failure means: fall back
+            _state["error"] = f"{type(exc).__name__}: {exc}"
+            warnings.warn(
+                "uw3dgs: could not build the compiled CPU rasterizer (backend 'cpu'); falling back to the "
+                f"pure-PyTorch reference, which is much slower. Reason: {str(exc).strip()[-500:]}",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        _state["module"] = module
+        _state["load_seconds"] = time.perf_counter() - start
+        return module
+
+
+def is_available() -> bool:
+    """Whether the extension builds / loads on this machine (builds it on first call)."""
+    return load_extension() is not None
+
+
+class _Project(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, settings):
+        ext = _state["module"]
+        means2d, conics, depths, radii = ext.project_forward(
+            means, quats, scales, opacities, viewmat, K, width, height,
+            settings.near_plane, settings.far_plane, settings.eps2d, settings.alpha_min,
+        )  # fmt: skip
+        ctx.save_for_backward(means, quats, scales, viewmat, K)
+        ctx.view = (width, height, settings)
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_radii):
+        means, quats, scales, viewmat, K = ctx.saved_tensors
+        width, height, settings = ctx.view
+        n = len(means)
+        g_means2d = means.new_zeros(n, 2) if g_means2d is None else g_means2d.contiguous()
+        g_conics = means.new_zeros(n, 3) if g_conics is None else g_conics.contiguous()
+        g_depths = means.new_zeros(n) if g_depths is None else g_depths.contiguous()
+        g_means, g_quats, g_scales = _state["module"].project_backward(
+            means, quats, scales, viewmat, K, width, height,
+            settings.near_plane, settings.far_plane, settings.eps2d, g_means2d, g_conics, g_depths,
+        )  # fmt: skip
+        return g_means, g_quats, g_scales, None, None, None, None, None, None
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, feats, depths, radii, width, height, settings):
+        ext = _state["module"]
+        render, depth, alpha, weight_sum, pixel_count, *state = ext.composite_forward(
+            means2d, conics, opacities, feats, depths, radii, width, height, settings.tile_size,
+            settings.alpha_min, settings.alpha_max, settings.transmittance_min,
+        )  # fmt: skip
+        ctx.save_for_backward(means2d, conics, opacities, feats, *state)
+        ctx.view = (width, height, settings)
+        ctx.mark_non_differentiable(weight_sum, pixel_count)
+        return render, depth, alpha, weight_sum, pixel_count
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_render, grad_depth, grad_alpha, _grad_weight_sum, _grad_pixel_count):
+        means2d, conics, opacities, feats, *state = ctx.saved_tensors
+        width, height, settings = ctx.view
+        empty = means2d.new_empty(0)  # stands for a zero gradient: unused outputs cost nothing
+        g_means2d, g_conics, g_opacities, g_feats = _state["module"].composite_backward(
+            means2d, conics, opacities, feats, width, height, settings.tile_size,
+            settings.alpha_min, settings.alpha_max, *state,
+            *(empty if g is None else g.contiguous() for g in (grad_render, grad_depth, grad_alpha)),
+        )  # fmt: skip
+        return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None
+
+
+def rasterize_cpu(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    settings: RasterSettings,
+) -> RasterOutput:
+    """Same contract and numbers as `rasterize_reference`, compiled ('cpu' backend)."""
+    if load_extension() is None or means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64):
+        return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings)
+    dtype = means.dtype
+    means, quats, scales, opacities, features = (
+        t.to(dtype).contiguous() for t in (means, quats, scales, opacities, features)
+    )
+    viewmat = viewmat.detach().to(dtype).contiguous()
+    K = K.detach().to(dtype).contiguous()
+    means2d, conics, depths, radii = _Project.apply(means, quats, scales, opacities, viewmat, K, width, height,
+                                                    settings)  # fmt: skip
+    feats = torch.cat([features, depths[:, None]], dim=1)  # depth composites like a feature
+    # Separate render / depth / alpha outputs: no slicing, so no zero-fill + copy ops in the backward.
+    render, depth, alpha, weight_sum, pixel_count = _Composite.apply(
+        means2d, conics, opacities, feats, depths.detach(), radii, width, height, settings
+    )
+    return RasterOutput(
+        render=render,
+        alpha=alpha,
+        depth=depth,
+        means2d=means2d,
+        radii=radii,
+        depths=depths,
+        weight_sum=weight_sum,
+        pixel_count=pixel_count,
+    )
