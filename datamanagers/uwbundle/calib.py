@@ -12,7 +12,6 @@ import numpy as np
 from uw3dgs.data.sfm import FixedCamera
 
 
-
 class CalibError(ValueError):
     """A malformed .calib file; the message names the file and the line."""
 

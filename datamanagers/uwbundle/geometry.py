@@ -7,7 +7,6 @@ import torch
 from torch import Tensor
 
 
-
 def distance_to_ground_truth(points: Tensor, gt_points: Tensor, max_block: int = 2**24,
                              return_index: bool = False) -> Tensor | tuple[Tensor, Tensor]:
     """Distance [N] from each point [N, 3] to its nearest ground-truth point [M, 3] (same frame and units).
