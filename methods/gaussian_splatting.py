@@ -20,7 +20,7 @@ from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render import RasterOutput, RasterSettings, rasterize
 from uw3dgs.utils.visualize import depth_to_image
 
 
@@ -60,14 +60,19 @@ class GaussianSplattingModel(Model):
             return torch.rand(3, device=device)
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
-    def get_outputs(self, camera: Camera) -> dict[str, Any]:
+    def render_gaussians(self, camera: Camera) -> RasterOutput:
+        """Rasterize the Gaussians' view-dependent colours; the 2D means keep their gradient for densification."""
         means, scales, quats, opacities = self.gaussians.activated()
         colors = self.gaussians.colors(camera.center)
         out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # densification reads the screen-space gradient
+        return out
+
+    def get_outputs(self, camera: Camera) -> dict[str, Any]:
+        out = self.render_gaussians(camera)
         alpha = out.alpha[..., None]
-        rgb = out.render + (1.0 - alpha) * self.background(means.device)
+        rgb = out.render + (1.0 - alpha) * self.background(out.alpha.device)
         depth = out.depth / out.alpha.clamp_min(1e-8)  # expected camera-space z of the covered part
         return {"rgb": rgb, "alpha": out.alpha, "depth": depth,
                 "range": depth * camera.ray_norms(), "means2d": out.means2d, "radii": out.radii,

@@ -25,7 +25,6 @@ from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_i
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import rasterize
 from uw3dgs.utils.visualize import depth_to_image
 
 
@@ -62,20 +61,16 @@ class UW3DGSModel(GaussianSplattingModel):
         return groups
 
     def get_outputs(self, camera: Camera) -> dict[str, Any]:
-        means, scales, quats, opacities = self.gaussians.activated()
-        colors = self.gaussians.colors(camera.center)
-        out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
-        if self.training and out.means2d.requires_grad:
-            out.means2d.retain_grad()
+        out = self.render_gaussians(camera)
         covered = out.alpha > 1e-4
         depth = torch.where(covered, out.depth / out.alpha.clamp_min(1e-4), torch.zeros_like(out.depth))
         ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
         outputs: dict[str, Any] = {
             "uri": out.render, "alpha": out.alpha, "depth": depth, "range": ranges, "means2d": out.means2d,
             "radii": out.radii, "raster": out, "image_size": (camera.width, camera.height),
-            "means": means, "camera_center": camera.center}
+            "camera_center": camera.center}
         if self.medium is None:
-            outputs["rgb"] = out.render + (1.0 - out.alpha[..., None]) * self.background(means.device)
+            outputs["rgb"] = out.render + (1.0 - out.alpha[..., None]) * self.background(out.alpha.device)
             return outputs
         dirs = camera.ray_directions().reshape(-1, 3)
         origin = camera.center.to(dirs.dtype)
@@ -99,7 +94,7 @@ class UW3DGSModel(GaussianSplattingModel):
             return outputs["range"].sum() * 0.0
         pix = pix[inside]
         rendered = outputs["range"][pix[:, 1], pix[:, 0]]
-        own = (outputs["means"][visible][inside] - outputs["camera_center"]).norm(dim=-1)
+        own = (self.gaussians.means[visible][inside] - outputs["camera_center"]).norm(dim=-1)
         scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
         return ((rendered - own).abs() / scale).mean()
 

@@ -105,3 +105,21 @@ def test_uw_eval_writes_nerfstudio_shaped_json(make_config):
     assert results["psnr"] == pytest.approx(expected["psnr"], abs=1e-4)
     assert len(data["per_image"]) == len(trainer.datamanager.test_indices)
     assert (trainer.run_dir / "eval" / "renders" / "compare").is_dir()
+
+
+@pytest.mark.parametrize("name", ["uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"])
+def test_uw3dgs_variants_train_and_report_their_metrics(make_config, name):
+    from uw3dgs.registry import METHODS
+
+    spec = METHODS[name].config
+    base = make_config(steps=12, timestamp=name)
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
+    trainer = train(dataclasses.replace(base, method_name=name, model=model, optimizers=spec.optimizers))
+    losses, _ = trainer.train_step(13)
+    has_medium = name != "uw3dgs-no-medium"
+    assert ("beta_loss" in losses) == (name in ("uw3dgs", "uw3dgs-no-lz"))
+    assert ("depth_loss" in losses) == (name in ("uw3dgs", "uw3dgs-no-lbeta"))
+    summary = trainer.eval_all(13)
+    assert ("uri_psnr" in summary) == has_medium
+    assert ("beta_d_rel_error" in summary) == has_medium
+    assert "depth_abs_rel" in summary

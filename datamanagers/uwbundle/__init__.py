@@ -37,7 +37,7 @@ from uw3dgs.data import colmap_dataset
 from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.data.datamanager import DataManager, DataManagerConfig
 from uw3dgs.data.scene import SceneData
-from uw3dgs.data.sfm import IMAGE_EXTENSIONS, image_size, list_images, quiet_colmap, run_sfm
+from uw3dgs.data.sfm import IMAGE_EXTENSIONS, list_images, quiet_colmap, run_sfm
 from uw3dgs.datamanagers.uwbundle.calib import CalibCamera as CalibCamera
 from uw3dgs.datamanagers.uwbundle.calib import CalibError as CalibError
 from uw3dgs.datamanagers.uwbundle.calib import StereoCalibration, read_calib
@@ -48,6 +48,7 @@ from uw3dgs.datamanagers.uwbundle.geometry import umeyama as umeyama
 from uw3dgs.datamanagers.uwbundle.ply import read_ply_points
 from uw3dgs.datamanagers.uwbundle.ply import write_ply_points as write_ply_points
 from uw3dgs.registry import DataManagerSpec
+from uw3dgs.utils.images import image_size
 
 """Bump when the SfM recipe changes: it is part of the cache key, so cached models are rebuilt."""
 SFM_VERSION = 1

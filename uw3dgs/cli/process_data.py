@@ -32,7 +32,8 @@ from rich.console import Console
 from rich.progress import Progress
 from rich.table import Table
 
-from uw3dgs.data.sfm import FixedCamera, SfmError, image_size, list_images, quiet_colmap, run_sfm
+from uw3dgs.data.sfm import FixedCamera, SfmError, list_images, quiet_colmap, run_sfm
+from uw3dgs.utils.images import image_size
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,6 @@ from typing import Literal
 import numpy as np
 import pycolmap
 import torch
-from PIL import Image
 
 from uw3dgs.data.colmap_dataset import (
     ColmapModel,
@@ -39,7 +38,7 @@ from uw3dgs.data.colmap_dataset import (
     z_bounds_from_points,
 )
 from uw3dgs.data.scene import GroundTruth, SceneData
-from uw3dgs.utils.images import read_image
+from uw3dgs.utils.images import image_size, read_image
 
 IMAGE_DIRS = ("Images_wb", "images_wb")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -114,12 +113,7 @@ def llff_model(image_dir: Path, llff: LlffPoses, names: list[str]) -> ColmapMode
     """A pinhole 'model' from LLFF alone: focal from hwf (rescaled if the images are not h x w), principal
     point at the image centre (LLFF's assumption), no SfM points."""
     first = image_dir / names[0]
-    try:
-        with Image.open(first) as img:
-            width, height = img.size
-    except OSError:
-        read_image(first)  # raises the clear ImageReadError naming the file
-        raise
+    width, height = image_size(first)
     h, w, f = llff.hwf[0]
     if abs(width / height - w / h) > 0.01:
         raise DatasetError(f"{llff.path}: poses are for {w:.0f}x{h:.0f} images but {first} is {width}x{height} "

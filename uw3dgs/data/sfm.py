@@ -21,8 +21,9 @@ from pathlib import Path
 from typing import Literal
 
 import pycolmap
-from PIL import Image
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+from uw3dgs.utils.images import image_size
 
 Matcher = Literal["exhaustive", "sequential"]
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -90,15 +91,6 @@ def list_images(image_dir: Path) -> list[str]:
         if path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS:
             names.append(rel.as_posix())
     return sorted(names)
-
-
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the file header, without decoding the pixels."""
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (OSError, SyntaxError) as err:
-        raise ValueError(f"{path}: unreadable image ({err}); re-export it or remove it from the folder") from err
 
 
 @contextlib.contextmanager

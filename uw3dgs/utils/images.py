@@ -59,6 +59,16 @@ def read_image(path: str | os.PathLike) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(pixels))
 
 
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) from the file header, without decoding the pixels; ImageReadError if unreadable."""
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, SyntaxError) as error:
+        raise ImageReadError(f"cannot read image {path}: {error}; {_fix_hint(error)}") from error
+
+
 def write_image(path: str | os.PathLike, img: ArrayLike) -> None:
     """Write a float [H, W, 3] image in [0, 1] as an 8-bit PNG, atomically.
 
