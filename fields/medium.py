@@ -11,6 +11,7 @@ query at half the range), which is the Beer-Lambert integral for a medium that v
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -47,6 +48,13 @@ class MediumGridConfig(InstantiateConfig):
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
     learn_beta: bool = True
     """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
+    init: Literal["prior", "estimate"] = "estimate"
+    """Starting medium: 'estimate' (default) = a homogeneous
+    medium fitted to the initial points' colours across the training views, the Gaussians' colours
+    de-hazed to match (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' =
+    beta_prior and b_inf_init everywhere, colours as they are (the paper)."""
+    estimate_iterations: int = 2000
+    """Adam iterations per channel of the 'estimate' fit, after its coarse grid search."""
 
 
 class VMField(nn.Module):
@@ -115,6 +123,16 @@ class MediumGrid(nn.Module):
         hi = torch.maximum(hi, camera_centers.max(0).values)
         pad = (hi - lo).clamp_min(1e-6) * config.box_padding
         return cls(config, lo - pad, hi + pad)
+
+    @torch.no_grad()
+    def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
+        """Make the medium (beta_D, beta_B per dataset unit, B_inf) the same everywhere: the VM factors add
+        nothing while their basis is zero, so each field's bias alone sets its value. None keeps a field."""
+        for field_, beta in ((self.beta_d, beta_d), (self.beta_b, beta_b)):
+            if beta is not None:
+                field_.basis.zero_()
+                field_.bias.copy_(softplus_inverse(beta.to(field_.bias).clamp_min(1e-4)))
+        self.b_inf.copy_(b_inf.to(self.b_inf))
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = {"medium_b_inf": [self.b_inf]}

@@ -22,9 +22,11 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_image
+from uw3dgs.fields.medium_estimate import estimate_medium
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.registry import MethodSpec
+from uw3dgs.render.sh import rgb_to_sh
 from uw3dgs.utils.visualize import depth_to_image
 
 
@@ -53,6 +55,22 @@ class UW3DGSModel(GaussianSplattingModel):
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
             self.medium = MediumGrid.around(config.medium, scene.points, centers)
+            if config.medium.init == "estimate":
+                self._start_from_estimate(scene, train_indices)
+
+    def _start_from_estimate(self, scene: SceneData, train_indices: list[int]) -> None:
+        """Medium from the initial points' colours across the training views; Gaussian colours de-hazed."""
+        assert self.medium is not None
+        mc = self.config.medium
+        estimate = estimate_medium(scene.points, scene.point_colors, [scene.cameras[i] for i in train_indices],
+                                   [scene.images[i] for i in train_indices], self.dataset_scale,
+                                   iterations=mc.estimate_iterations)
+        learned = mc.learn_beta
+        self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
+                                    estimate.b_inf)
+        if learned:  # with beta pinned at the prior, the estimate's de-hazed colours would not match it
+            with torch.no_grad():
+                self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()

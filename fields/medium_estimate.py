@@ -1,0 +1,162 @@
+"""A first estimate of a homogeneous medium from the initial (SfM) points, before any Gaussian is trained.
+
+Every initial point p is projected into every training view k that sees it in front of the camera; the
+pixel colour there is an observation I_pk of the same surface at range z_pk. The formation model
+    I_pk = J_p exp(-beta_D z_pk) + B_inf (1 - exp(-beta_B z_pk))
+is then fitted to all observations at once: one unknown clean colour J_p per point and one homogeneous
+(beta_D, beta_B, B_inf). This is the classic SeaThru-style estimate (Akkaynak & Treibitz 2019): the
+attenuation is read off how a point's colour changes with range, the backscatter off how dark points
+brighten with range. It needs the camera-to-point range to vary across views, which it does for the
+forward-looking or surveying captures underwater datasets are made of.
+
+Why it exists: jointly learning the medium and the Gaussians from the constant beta_prior lets the
+Gaussians' colours (initialised from underwater points) absorb the water first, and the photometric loss
+is then almost flat along the valley of (colour, medium) pairs that explain the images equally well; the
+medium stays near where it started. Starting from this fit, and from de-hazed point colours, puts the
+model in the right valley (measurements in README, "UW-3DGS on the synthetic scene").
+
+Occlusions and points that are outliers give wrong observations; an L1 fit shrugs most of them off.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from uw3dgs.cameras import Camera
+
+
+@dataclass
+class MediumEstimate:
+    beta_d: Tensor
+    """[3] per dataset unit."""
+    beta_b: Tensor
+    """[3] per dataset unit."""
+    b_inf: Tensor
+    """[3]"""
+    clean_colors: Tensor
+    """[P, 3] J_p of every input point (points without enough observations keep their input colour)."""
+    observations: int
+    """Number of (point, view) observations the fit used."""
+    fitted_points: int
+    """Points with at least `min_views` observations (the only ones that constrain the medium)."""
+
+
+def observe_points(points: Tensor, cameras: list[Camera], images: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    """Pixel colours and ranges of `points` [P, 3] in every view that sees them in front of the camera.
+
+    Returns (point index [M], colour [M, 3], range [M] in world units); nearest-pixel reads, no occlusion test.
+    """
+    index, colors, ranges = [], [], []
+    for cam, image in zip(cameras, images, strict=True):
+        viewmat, K = cam.viewmat.to(points.dtype), cam.K.to(points.dtype)
+        p_cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+        z = p_cam[:, 2]
+        in_front = z > 1e-6
+        uv = (p_cam[:, :2] / z.clamp_min(1e-6)[:, None]) @ K[:2, :2].T + K[:2, 2]
+        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        inside = in_front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+        ids = torch.nonzero(inside).squeeze(1)
+        index.append(ids)
+        colors.append(image[row[ids], col[ids]].to(points.dtype))
+        ranges.append((points[ids] - cam.center.to(points.dtype)).norm(dim=-1))
+    return torch.cat(index), torch.cat(colors), torch.cat(ranges)
+
+
+def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
+                    dataset_scale: float, min_views: int = 3, iterations: int = 2000) -> MediumEstimate:
+    """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
+
+    Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Points seen
+    by fewer than `min_views` views cannot separate their colour from the water and keep their input colour.
+    """
+    idx, obs, ranges = observe_points(points.float(), cameras, images)
+    keep = torch.bincount(idx, minlength=len(points))[idx] >= min_views
+    if not bool(keep.any()):
+        raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
+                         "estimated from them: use --model.medium.init prior")
+    fitted, local = torch.unique(idx[keep], return_inverse=True)
+    beta_d, beta_b, b_inf, clean = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, iterations)
+    colors = point_colors.detach().float().clone()
+    colors[fitted] = clean
+    return MediumEstimate(beta_d, beta_b, b_inf, colors, int(keep.sum()), len(fitted))
+
+
+def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor, b_inf: Tensor,
+                       num_points: int) -> tuple[Tensor, Tensor]:
+    """Residuals [..., M] of the best clean colours for a medium, and those colours [..., P].
+
+    One channel; the medium tensors share any leading shape (candidates). For a given medium each J_p has a
+    closed form, least squares over its observations clamped to [0, 1], so only the medium is searched.
+    """
+    direct = torch.exp(-beta_d[..., None] * z)
+    back = b_inf[..., None] * (1 - torch.exp(-beta_b[..., None] * z))
+    shape = (*direct.shape[:-1], num_points)
+    num = torch.zeros(shape).index_add_(-1, point, direct * (color - back))
+    den = torch.zeros(shape).index_add_(-1, point, direct * direct)
+    clean = (num / den.clamp_min(1e-12)).clamp(0, 1)
+    return clean[..., point] * direct + back - color, clean
+
+
+def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps: int) -> tuple[float, float, float]:
+    """The best (beta_D, beta_B, B_inf) of one channel on a coarse grid: a global start for the refinement.
+
+    The L1 landscape has long flat valleys (B_inf against beta_B where backscatter is faint), so a local
+    method started at an arbitrary prior can stall in the wrong one. Betas span optical depths 0.02 to 5
+    at the median range, whatever the dataset's units.
+    """
+    scale = float(z.median())
+    betas = torch.logspace(math.log10(0.02), math.log10(5.0), steps) / scale
+    bd, bb, b = torch.meshgrid(betas, betas, torch.linspace(0.02, 0.98, steps), indexing="ij")
+    bd, bb, b = bd.reshape(-1), bb.reshape(-1), b.reshape(-1)
+    losses = torch.cat([_profiled_residual(point, color, z, bd[i:i + 256], bb[i:i + 256], b[i:i + 256],
+                                           num_points)[0].abs().mean(-1) for i in range(0, len(bd), 256)])
+    best = int(losses.argmin())
+    return float(bd[best]), float(bb[best]), float(b[best])
+
+
+def fit_medium(point: Tensor, color: Tensor, z: Tensor, iterations: int = 2000, lr: float = 0.02,
+               grid_steps: int = 16, grid_observations: int = 4096,
+               fit_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """L1 fit of color[m] = J[point[m]] exp(-beta_D z[m]) + B_inf (1 - exp(-beta_B z[m])), per channel.
+
+    point [M] in 0..P-1 (every value present), color [M, 3], z [M] > 0. Returns beta_D, beta_B, B_inf [3]
+    and J [P, 3] in [0, 1]. Each channel is independent: a coarse grid search on a random
+    `grid_observations` of the observations, Adam on `fit_observations` of them (so big SfM models cost
+    no more than small ones), with the J_p profiled out, then J for every point from all its observations.
+    L1 tolerates occluded or outlying observations.
+    """
+    num_points = int(point.max()) + 1
+    z = z.float()
+    order = torch.randperm(len(point), generator=torch.Generator().manual_seed(0))
+
+    def sample(count: int) -> tuple[Tensor, Tensor, int]:  # (observations, their re-numbered points, #points)
+        subset = order[:count]
+        points, local = torch.unique(point[subset], return_inverse=True)
+        return subset, local, len(points)
+
+    grid, grid_local, grid_points = sample(grid_observations)
+    fit, fit_local, fit_points = sample(fit_observations)
+    results = []
+    for c in range(3):
+        start = _grid_start(grid_local, color[grid, c].float(), z[grid], grid_points, grid_steps)
+        params = torch.tensor([math.log(start[0]), math.log(start[1]), math.log(start[2] / (1 - start[2]))],
+                              requires_grad=True)  # log beta_D, log beta_B, logit B_inf
+        optimizer = torch.optim.Adam([params], lr=lr)
+        # decay to lr / 100: Adam at a constant rate hovers around an L1 minimum instead of settling in it
+        schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=0.01 ** (1 / max(iterations, 1)))
+        for _ in range(iterations):
+            optimizer.zero_grad()
+            _profiled_residual(fit_local, color[fit, c].float(), z[fit], params[0].exp(), params[1].exp(),
+                               torch.sigmoid(params[2]), fit_points)[0].abs().mean().backward()
+            optimizer.step()
+            schedule.step()
+        with torch.no_grad():
+            medium = (params[0].exp(), params[1].exp(), torch.sigmoid(params[2]))
+            clean = _profiled_residual(point, color[:, c].float(), z, *medium, num_points)[1]
+        results.append((*medium, clean))
+    beta_d, beta_b, b_inf, clean = (torch.stack(x, dim=-1) for x in zip(*results, strict=True))
+    return beta_d, beta_b, b_inf, clean
