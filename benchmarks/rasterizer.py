@@ -97,6 +97,9 @@ def main() -> None:
     parser.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
     parser.add_argument("--backends", default=None, help="comma-separated (default: every registered CPU backend)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per config (reference: max(2, this // 2))")
+    parser.add_argument(
+        "--configs", default=None, help="comma-separated GAUSSIANSxSIZE, e.g. 100000x512 (default: all four)"
+    )
     args = parser.parse_args()
     if args.worker:
         backend, n, size, mode, repeats = args.worker
@@ -112,8 +115,11 @@ def main() -> None:
         backends.remove("torch")
     backends.insert(0, "torch")
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load: {os.getloadavg()}", file=sys.stderr)
+    configs = CONFIGS
+    if args.configs:
+        configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
     rows = []
-    for n, size in CONFIGS:
+    for n, size in configs:
         ref = {}
         for backend in backends:
             repeats = max(2, args.repeats // 2) if backend == "torch" else args.repeats

@@ -12,7 +12,9 @@ Two autograd functions keep `means2d` an intermediate of the graph (so `retain_g
 screen-space gradient): projection (means, quats, scales -> means2d, conics, depths) and compositing
 (means2d, conics, opacities, features + depth -> render, depth, alpha). Both backwards are hand-written C++; gradients
 are accumulated per (tile, Gaussian) slot and reduced per Gaussian in a fixed order, so results are
-bitwise reproducible whatever the thread count.
+bitwise reproducible whatever the thread count. When a gradient is needed, the compositing forward also
+records which pixels each Gaussian blended (4 bytes per blended run of 8 or 16 pixels), and the backward
+replays exactly those; under `torch.no_grad()` nothing is recorded.
 """
 
 from __future__ import annotations
@@ -39,14 +41,25 @@ CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
 """-ffp-contract=off: no fused multiply-adds, so results follow the reference's rounding as closely as possible."""
 
 
+AVX512 = ["avx512f", "avx512dq", "avx512vl", "avx512bw"]
+
+
 def _simd_flags() -> list[str]:
-    """AVX2 when this CPU has it (x86 Linux); the build folder is per flag set, so caches never mix."""
+    """AVX-512 or AVX2 when this CPU has it (x86 Linux): compositing then works on 16 or 8 pixels per instruction.
+
+    The build folder is named after the flag set, so caches built for different CPUs never mix.
+    """
     try:
-        flags = Path("/proc/cpuinfo").read_text().split()
+        flags = set(Path("/proc/cpuinfo").read_text().split())
     except OSError:
         return []
-    return ["-mavx2", "-mfma"] if "avx2" in flags and "fma" in flags else []
+    if not {"avx2", "fma"} <= flags:
+        return []
+    return ["-mavx2", "-mfma"] + ([f"-m{f}" for f in AVX512] if set(AVX512) <= flags else [])
 
+
+MAX_TILE = 256
+"""Largest tile_size the compiled backend takes (its per-row codes hold 8-bit rows); larger ones use the reference."""
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -58,7 +71,8 @@ def build_directory() -> Path:
         root = Path(os.environ["TORCH_EXTENSIONS_DIR"])
     else:
         root = default_cache_dir() / "torch_extensions"
-    simd = "_avx2" if _simd_flags() else ""
+    flags = _simd_flags()
+    simd = "_avx512" if "-mavx512f" in flags else "_avx2" if flags else ""
     return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}"
 
 
@@ -141,9 +155,10 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, depths, radii, width, height, settings):
         ext = _state["module"]
+        for_backward = any(ctx.needs_input_grad[:4])  # else no state is recorded for a backward
         render, depth, alpha, weight_sum, pixel_count, *state = ext.composite_forward(
             means2d, conics, opacities, feats, depths, radii, width, height, settings.tile_size,
-            settings.alpha_min, settings.alpha_max, settings.transmittance_min,
+            settings.alpha_min, settings.alpha_max, settings.transmittance_min, for_backward,
         )  # fmt: skip
         ctx.save_for_backward(means2d, conics, opacities, feats, *state)
         ctx.view = (width, height, settings)
@@ -158,7 +173,7 @@ class _Composite(torch.autograd.Function):
         empty = means2d.new_empty(0)  # stands for a zero gradient: unused outputs cost nothing
         g_means2d, g_conics, g_opacities, g_feats = _state["module"].composite_backward(
             means2d, conics, opacities, feats, width, height, settings.tile_size,
-            settings.alpha_min, settings.alpha_max, *state,
+            settings.alpha_max, state,
             *(empty if g is None else g.contiguous() for g in (grad_render, grad_depth, grad_alpha)),
         )  # fmt: skip
         return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None
@@ -177,7 +192,8 @@ def rasterize_cpu(
     settings: RasterSettings,
 ) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, compiled ('cpu' backend)."""
-    if load_extension() is None or means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64):
+    unsupported = means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)
+    if unsupported or settings.tile_size > MAX_TILE or load_extension() is None:
         return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings)
     dtype = means.dtype
     means, quats, scales, opacities, features = (

@@ -1,21 +1,29 @@
 // Compiled CPU 3DGS rasterizer: projection, tile binning, sorting, compositing and their hand-written
 // backward passes. Numerically mirrors uw3dgs/render/reference.py (see that file for the maths).
-// Parallel across Gaussians (projection) and tiles (compositing) with OpenMP. Every gradient is
-// written to a per-(tile, Gaussian) slot and reduced per Gaussian in a fixed order, so results are
-// bitwise identical run to run and independent of the thread count.
+// Parallel across Gaussians (projection) and tiles (compositing) with OpenMP; compositing is SIMD across
+// the pixels of a tile row (see "SIMD helpers"). The forward records which pixels each Gaussian blended,
+// so the backward replays exactly those. Every gradient is written to a per-(tile, Gaussian) slot and
+// reduced per Gaussian in a fixed order, so results are bitwise identical run to run and independent of
+// the thread count (not of the SIMD width the build was compiled for: sums are split across lanes).
 #include <torch/extension.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <cstring>
 #include <limits>
-#include <numeric>
 #include <type_traits>
 #include <vector>
 
 #ifdef _OPENMP
 #include <omp.h>
+#else
+inline int omp_get_max_threads() { return 1; }
+inline int omp_get_thread_num() { return 0; }
+#endif
+#ifdef __AVX2__
+#include <immintrin.h>
 #endif
 
 namespace {
@@ -284,6 +292,69 @@ void project_backward_impl(const torch::Tensor& means, const torch::Tensor& quat
 }
 
 // ---------------------------------------------------------------------------------------------
+// Footprints
+// ---------------------------------------------------------------------------------------------
+
+// What the tile loops need of one Gaussian, computed once per call (not once per tile it touches) and
+// packed so that a (tile, Gaussian) pair reads one record.
+//
+// The footprint: pixels where the Gaussian can reach alpha_min lie in the ellipse
+// {a dx^2 + 2 b dx dy + c dy^2 <= 2 lgap}, lgap = log(opacity) - log(alpha_min) + kLogMargin, whose box spans
+// |dx| <= sqrt(2 lgap c / det) and |dy| <= sqrt(2 lgap a / det). These real-arithmetic bounds, widened by a
+// pixel, are only used to skip pixels whose alpha is certainly below alpha_min; pixels inside get the
+// reference's exact tests.
+template <typename T>
+struct GaussRec {
+  T mx, my, a, b, c, op, logop, ha;  // ha = -a / 2
+  int32_t x_lo, x_hi, y_lo, y_hi;    // pixel box (inclusive, clipped to the image); empty when y_lo > y_hi
+};
+
+// Pixels i (centre i + 0.5) with |i + 0.5 - centre| <= ext, widened by one, clipped to [0, size).
+inline void pixel_range(double centre, double ext, int64_t size, int32_t& lo, int32_t& hi) {
+  const double l = std::ceil(centre - ext - 0.5) - 1, u = std::floor(centre + ext - 0.5) + 1;
+  // clamped in double first: no overflowing casts
+  lo = static_cast<int32_t>(std::max(l, 0.0));
+  hi = static_cast<int32_t>(std::min(u, static_cast<double>(size - 1)));
+  if (!(l <= u) || lo > hi) { lo = 1; hi = 0; }
+}
+
+// The records live in a byte tensor, so that the forward can hand them to the backward.
+template <typename T>
+torch::Tensor gauss_records(const torch::Tensor& means2d, const torch::Tensor& conics,
+                            const torch::Tensor& opacities, double log_cut, int64_t width, int64_t height) {
+  const int64_t n = means2d.size(0);
+  const T* m2 = means2d.data_ptr<T>();
+  const T* cn = conics.data_ptr<T>();
+  const T* op = opacities.data_ptr<T>();
+  auto out = torch::empty({n * static_cast<int64_t>(sizeof(GaussRec<T>))}, torch::kUInt8);
+  GaussRec<T>* recs = reinterpret_cast<GaussRec<T>*>(out.data_ptr<uint8_t>());
+#pragma omp parallel for schedule(static) if (n >= kParallelMin)
+  for (int64_t i = 0; i < n; ++i) {
+    GaussRec<T>& g = recs[i];
+    g.mx = m2[2 * i]; g.my = m2[2 * i + 1];
+    g.a = cn[3 * i]; g.b = cn[3 * i + 1]; g.c = cn[3 * i + 2];
+    g.op = op[i];
+    g.ha = static_cast<T>(-0.5) * g.a;
+    g.x_lo = 0; g.x_hi = static_cast<int32_t>(width - 1); g.y_lo = 0; g.y_hi = static_cast<int32_t>(height - 1);
+    g.logop = std::log(g.op);
+    const double a = g.a, b = g.b, c = g.c;
+    const double lgap = static_cast<double>(g.logop) - log_cut;
+    const double det = a * c - b * b;
+    if (!(lgap >= 0)) { g.y_lo = 1; g.y_hi = 0; continue; }  // never reaches alpha_min (also NaN)
+    if (!(a > 0) || !(det > 0) || !std::isfinite(det)) continue;  // degenerate conic: every pixel
+    pixel_range(g.mx, std::sqrt(2.0 * lgap * c / det), width, g.x_lo, g.x_hi);
+    pixel_range(g.my, std::sqrt(2.0 * lgap * a / det), height, g.y_lo, g.y_hi);
+    if (g.x_lo > g.x_hi) { g.y_lo = 1; g.y_hi = 0; }
+  }
+  return out;
+}
+
+template <typename T>
+const GaussRec<T>* records_of(const torch::Tensor& recs) {
+  return reinterpret_cast<const GaussRec<T>*>(recs.data_ptr<uint8_t>());
+}
+
+// ---------------------------------------------------------------------------------------------
 // Binning
 // ---------------------------------------------------------------------------------------------
 
@@ -305,9 +376,41 @@ inline void pixel_span(T centre, T radius, int64_t size, int64_t& first, int64_t
   last = static_cast<int64_t>(l);
 }
 
+// Stable LSD radix sort of ids by depth (8-bit digits): the order of std::stable_sort by depth, in linear
+// time. Keys are the float bits made monotonic; depths of binned Gaussians are finite and positive, and
+// + 0 turns a -0 into +0 so that the two compare equal as floats do.
 template <typename T>
-Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const torch::Tensor& radii, int64_t width,
-              int64_t height, int64_t tile) {
+void sort_by_depth(std::vector<int32_t>& ids, const T* depth) {
+  using Key = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
+  const size_t n = ids.size();
+  if (n < 2) return;
+  std::vector<Key> keys(n), keys2(n);
+  std::vector<int32_t> ids2(n);
+  for (size_t i = 0; i < n; ++i) {
+    const T d = depth[ids[i]] + static_cast<T>(0);
+    Key k;
+    std::memcpy(&k, &d, sizeof k);
+    const Key sign = Key(1) << (8 * sizeof(Key) - 1);
+    keys[i] = (k & sign) ? ~k : (k | sign);
+  }
+  for (size_t shift = 0; shift < 8 * sizeof(Key); shift += 8) {
+    size_t count[257] = {};
+    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 255) + 1];
+    if (count[((keys[0] >> shift) & 255) + 1] == n) continue;  // one digit value: order unchanged
+    for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t pos = count[(keys[i] >> shift) & 255]++;
+      keys2[pos] = keys[i];
+      ids2[pos] = ids[i];
+    }
+    keys.swap(keys2);
+    ids.swap(ids2);
+  }
+}
+
+template <typename T>
+Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const torch::Tensor& radii,
+              const GaussRec<T>* recs, int64_t width, int64_t height, int64_t tile) {
   const int64_t n = means2d.size(0);
   const T* m2 = means2d.data_ptr<T>();
   const T* dp = depths.data_ptr<T>();
@@ -323,9 +426,11 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const t
   ids.reserve(n);
   for (int64_t i = 0; i < n; ++i)
     if (rad[i] > 0) ids.push_back(static_cast<int32_t>(i));
-  std::sort(ids.begin(), ids.end(), [dp](int32_t x, int32_t y) { return dp[x] < dp[y] || (dp[x] == dp[y] && x < y); });
+  sort_by_depth(ids, dp);
 
-  // Tile rectangle of each Gaussian; slots are per Gaussian in index order (for the gradient reduction).
+  // Tile rectangle of each Gaussian: the tiles of its bounding square (the reference's binning) that its
+  // footprint box reaches; the others would composite nothing. Slots are per Gaussian in index order (for
+  // the gradient reduction).
   std::vector<int64_t> rect(4 * n, 0);
   b.gauss_starts = torch::zeros({n + 1}, torch::kInt64);
   int64_t* gstart = b.gauss_starts.data_ptr<int64_t>();
@@ -337,7 +442,11 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const t
       int64_t x0, x1, y0, y1;
       pixel_span(m2[2 * i], r, width, x0, x1);
       pixel_span(m2[2 * i + 1], r, height, y0, y1);
-      x0 /= tile; x1 /= tile; y0 /= tile; y1 /= tile;
+      const GaussRec<T>& g = recs[i];
+      x0 = std::max<int64_t>(x0, g.x_lo); x1 = std::min<int64_t>(x1, g.x_hi);
+      y0 = std::max<int64_t>(y0, g.y_lo); y1 = std::min<int64_t>(y1, g.y_hi);
+      if (x0 > x1 || y0 > y1) { x0 = y0 = 0; x1 = y1 = -1; }  // footprint empty or outside the square
+      x0 /= tile; x1 = x1 < 0 ? -1 : x1 / tile; y0 /= tile; y1 = y1 < 0 ? -1 : y1 / tile;
       rect[4 * i] = x0; rect[4 * i + 1] = x1; rect[4 * i + 2] = y0; rect[4 * i + 3] = y1;
       cnt = std::max<int64_t>(0, x1 - x0 + 1) * std::max<int64_t>(0, y1 - y0 + 1);
     }
@@ -372,82 +481,194 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const t
 }
 
 // ---------------------------------------------------------------------------------------------
+// SIMD helpers
+// ---------------------------------------------------------------------------------------------
+
+// Compositing works on kLanes consecutive pixels of a tile row at once, written with GCC vector
+// extensions so one source serves float and double and compiles to AVX-512, AVX2 or plain SSE. Every
+// lane does exactly the scalar per-pixel arithmetic of the reference; masks replace its branches.
+#ifdef __AVX512F__
+constexpr int kLanes = 16;  // one 512-bit register of floats
+#else
+constexpr int kLanes = 8;   // one 256-bit register of floats
+#endif
+
+template <typename T>
+struct Simd;
+template <>
+struct Simd<float> {
+  typedef float V __attribute__((vector_size(kLanes * 4)));
+  typedef int32_t I __attribute__((vector_size(kLanes * 4)));
+  using Int = int32_t;
+};
+template <>
+struct Simd<double> {
+  typedef double V __attribute__((vector_size(kLanes * 8)));
+  typedef int64_t I __attribute__((vector_size(kLanes * 8)));
+  using Int = int64_t;
+};
+
+template <typename V, typename T>
+inline V vload(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof v);
+  return v;
+}
+template <typename V, typename T>
+inline void vstore(T* p, const V& v) { std::memcpy(p, &v, sizeof v); }
+template <typename V, typename T>
+inline V splat(T x) { return V{} + x; }
+
+// Bit i set when lane i of the mask is set.
+template <typename I>
+inline unsigned mask_bits(const I& m) {
+#if defined(__AVX512F__)
+  const __m512i* h = reinterpret_cast<const __m512i*>(&m);
+  if constexpr (sizeof(m[0]) == 4) {
+    return static_cast<unsigned>(_mm512_test_epi32_mask(h[0], h[0]));
+  } else {
+    return static_cast<unsigned>(_mm512_test_epi64_mask(h[0], h[0])) |
+           (static_cast<unsigned>(_mm512_test_epi64_mask(h[1], h[1])) << 8);
+  }
+#elif defined(__AVX2__)
+  if constexpr (sizeof(m[0]) == 4) {
+    return static_cast<unsigned>(_mm256_movemask_ps(_mm256_castsi256_ps(reinterpret_cast<const __m256i&>(m))));
+  } else {
+    const __m256i* h = reinterpret_cast<const __m256i*>(&m);
+    return static_cast<unsigned>(_mm256_movemask_pd(_mm256_castsi256_pd(h[0]))) |
+           (static_cast<unsigned>(_mm256_movemask_pd(_mm256_castsi256_pd(h[1]))) << 4);
+  }
+#else
+  unsigned bits = 0;
+  for (int i = 0; i < kLanes; ++i) bits |= (m[i] != 0 ? 1u : 0u) << i;
+  return bits;
+#endif
+}
+
+// Horizontal sum in a fixed order (deterministic): a pairwise tree, lanes i and i + n / 2 first.
+template <typename T, typename V>
+inline T hsum(const V& v) {
+  T buf[kLanes];
+  std::memcpy(buf, &v, sizeof v);
+  for (int n = kLanes / 2; n > 0; n /= 2)
+    for (int i = 0; i < n; ++i) buf[i] += buf[i + n];
+  return buf[0];
+}
+
+// exp(x) for x in [-80, 80] (callers clamp): Cody-Waite reduction and Sleef's minimax polynomials (about
+// 1 ulp, like the Sleef exp torch uses), in plain vector arithmetic so it vectorises; q * L2U is exact.
+inline Simd<float>::V vexp(Simd<float>::V x) {
+  using V = Simd<float>::V;
+  using I = Simd<float>::I;
+  V q = x * 1.442695040888963407359924681001892137f;
+  q = (q + 12582912.0f) - 12582912.0f;  // round to nearest: 1.5 * 2^23 (no -ffast-math, so not folded)
+  V s = x - q * 0.693145751953125f;
+  s = s - q * 1.428606765330187045e-06f;
+  V u = splat<V>(0.000198527617612853646278381f);
+  u = u * s + 0.00139304355252534151077271f;
+  u = u * s + 0.00833336077630519866943359f;
+  u = u * s + 0.0416664853692054748535156f;
+  u = u * s + 0.166666671633720397949219f;
+  u = u * s + 0.5f;
+  u = 1.0f + ((s * s) * u + s);
+  const I scale = (__builtin_convertvector(q, I) + 127) << 23;  // 2^q, a normal float for |q| <= 126
+  return u * (V)scale;  // a vector cast reinterprets the bits
+}
+
+inline Simd<double>::V vexp(Simd<double>::V x) {
+  using V = Simd<double>::V;
+  using I = Simd<double>::I;
+  V q = x * 1.442695040888963407359924681001892137;
+  q = (q + 6755399441055744.0) - 6755399441055744.0;  // round to nearest: 1.5 * 2^52
+  V s = x - q * .69314718055966295651160180568695068359375;
+  s = s - q * .28235290563031577122588448175013436025525412068e-12;
+  V u = splat<V>(+0.2081276378237164457e-8);
+  u = u * s + 0.2511210703042288022e-7;
+  u = u * s + 0.2755762628169491192e-6;
+  u = u * s + 0.2755723402025388239e-5;
+  u = u * s + 0.2480158687479686264e-4;
+  u = u * s + 0.0001984126989855865850;
+  u = u * s + 0.001388888888914497797;
+  u = u * s + 0.008333333333314938210;
+  u = u * s + 0.04166666666666602598;
+  u = u * s + 0.1666666666666669072;
+  u = u * s + 0.5;
+  u = 1.0 + ((s * s) * u + s);
+  const I scale = (__builtin_convertvector(q, I) + 1023) << 52;
+  return u * (V)scale;
+}
+
+// ---------------------------------------------------------------------------------------------
 // Compositing
 // ---------------------------------------------------------------------------------------------
 
-// One tile's Gaussians gathered contiguously.
-template <typename T>
-struct TileData {
-  std::vector<T> mx, my, a, b, c, op, logop, feat;
-  void load(const int32_t* ids, int64_t k, const T* m2, const T* cn, const T* opac, const T* feats, int64_t F) {
-    mx.resize(k); my.resize(k); a.resize(k); b.resize(k); c.resize(k); op.resize(k); logop.resize(k);
-    feat.resize(k * F);
-    for (int64_t j = 0; j < k; ++j) {
-      const int64_t g = ids[j];
-      mx[j] = m2[2 * g]; my[j] = m2[2 * g + 1];
-      a[j] = cn[3 * g]; b[j] = cn[3 * g + 1]; c[j] = cn[3 * g + 2];
-      op[j] = opac[g];
-      logop[j] = std::log(opac[g]);
-      for (int64_t f = 0; f < F; ++f) feat[j * F + f] = feats[g * F + f];
-    }
+// A tile's Gaussians are composited in batches of kBatch, in two passes:
+//  1. for every Gaussian of the batch and every kLanes-pixel chunk of its footprint box (chunks aligned
+//     to the tile, so a pixel is always in the same lane), compute the exponent and test it; the chunks
+//     with a pixel left are appended to a list without branching;
+//  2. walk the list (in Gaussian order, which is all the per-pixel sums need) and blend, skipping the
+//     pixels that terminated since pass 1.
+// Pass 2 has no data-dependent branch but the rare early termination, so the CPU overlaps consecutive
+// chunks instead of stalling on the exp's latency and on mispredicted short loops.
+constexpr int64_t kBatch = 16;
+
+// What the forward records for the backward. For every chunk in which a Gaussian blended a pixel, one
+// 32-bit code: tile row, chunk column (kRowBits bits each) and the mask of blended lanes (top kLanes bits). Per
+// (tile, Gaussian) pair the number of its codes; per tile its codes' thread buffer and range. The backward
+// recomputes alpha at exactly those lanes (bit-identical: same code path), so it needs no footprint
+// search, no exp of pixels that were not blended and no termination logic. About 4 bytes per blended chunk.
+struct CodeBuf {  // growable without zero-filling; the memory is handed to a tensor at the end
+  uint32_t* data = nullptr;
+  int64_t size = 0, cap = 0;
+  void reserve(int64_t n) {
+    if (n <= cap) return;
+    cap = std::max<int64_t>(n, 2 * cap);
+    data = static_cast<uint32_t*>(std::realloc(data, cap * sizeof(uint32_t)));
+    TORCH_CHECK(data != nullptr, "out of memory");
   }
+  torch::Tensor release() {
+    if (size == 0) { std::free(data); data = nullptr; return torch::empty({0}, torch::kInt32); }
+    uint32_t* d = data;
+    data = nullptr;
+    return torch::from_blob(d, {size}, [](void* q) { std::free(q); }, torch::kInt32);
+  }
+  ~CodeBuf() { std::free(data); }
+};
+constexpr int kMaskShift = 32 - kLanes, kRowBits = kMaskShift / 2, kMaxTile = 1 << kRowBits;
+
+struct Trace {
+  torch::Tensor pair_codes;               // [pairs] int32: codes of each (tile, Gaussian) pair
+  torch::Tensor tile_codes;               // [tiles, 3] int64: thread buffer, first, end
+  std::vector<torch::Tensor> codes;       // per thread buffer, int32
 };
 
-// Pixels of a tile a Gaussian can reach alpha_min in, row by row: exact real-arithmetic bounds of
-// {log(opacity) + power >= log(alpha_min) - kLogMargin}, widened by a pixel. Pixels outside are never
-// evaluated (their alpha is certainly below alpha_min); pixels inside get the reference's exact tests.
-struct Footprint {
-  int64_t y_lo, y_hi;  // rows [y_lo, y_hi], empty when y_lo > y_hi
-  bool full;           // degenerate conic: evaluate the whole tile
-  double mx, my, a, b, lgap, inv_a = 0;
-  void init(double mx_, double my_, double a_, double b_, double c_, double logop, double log_cut, int64_t y0,
-            int64_t y1) {
-    mx = mx_; my = my_; a = a_; b = b_;
-    lgap = logop - log_cut;
-    full = false;
-    y_lo = y0; y_hi = y1 - 1;
-    if (!(lgap >= 0)) { y_lo = 1; y_hi = 0; return; }  // never reaches alpha_min (also NaN)
-    const double detc = a * c_ - b * b;
-    if (!(a > 0) || !(detc > 0) || !std::isfinite(detc)) { full = true; return; }
-    const double ext = std::sqrt(2.0 * lgap * a / detc);
-    y_lo = std::max<int64_t>(y0, static_cast<int64_t>(std::ceil(my - ext - 0.5)) - 1);
-    y_hi = std::min<int64_t>(y1 - 1, static_cast<int64_t>(std::floor(my + ext - 0.5)) + 1);
-    cc = c_;
-    inv_a = 1.0 / a;
-  }
-  double cc = 0;
-  // Columns [x_lo, x_hi] of row y; false when empty.
-  bool row(int64_t y, int64_t x0, int64_t x1, int64_t& x_lo, int64_t& x_hi) const {
-    if (full) { x_lo = x0; x_hi = x1 - 1; return true; }
-    const double dy = static_cast<double>(y) + 0.5 - my;
-    const double disc = (b * dy) * (b * dy) + 2.0 * a * (lgap - 0.5 * cc * dy * dy);
-    if (!(disc >= 0)) return false;
-    const double sq = std::sqrt(disc);
-    const double centre = mx - b * dy * inv_a - 0.5, half = sq * inv_a;
-    x_lo = std::max<int64_t>(x0, static_cast<int64_t>(std::ceil(centre - half)) - 1);
-    x_hi = std::min<int64_t>(x1 - 1, static_cast<int64_t>(std::floor(centre + half)) + 1);
-    return x_lo <= x_hi;
-  }
-};
+// Pixel box of a Gaussian within a tile, as tile-local rows and chunk columns; false when they miss.
+template <typename T>
+inline bool tile_box(const GaussRec<T>& g, int64_t x0, int64_t y0, int64_t w, int64_t h, int64_t& r_lo,
+                     int64_t& r_hi, int64_t& c_lo, int64_t& c_hi) {
+  r_lo = std::max<int64_t>(g.y_lo - y0, 0);
+  r_hi = std::min<int64_t>(g.y_hi - y0, h - 1);
+  const int64_t xa = std::max<int64_t>(g.x_lo - x0, 0), xb = std::min<int64_t>(g.x_hi - x0, w - 1);
+  c_lo = xa / kLanes;
+  c_hi = xb / kLanes;
+  return r_lo <= r_hi && xa <= xb;
+}
 
 template <typename T, int NF>
-void composite_forward_impl(const Bins& bins, const torch::Tensor& means2d, const torch::Tensor& conics,
-                            const torch::Tensor& opacities, const torch::Tensor& feats, int64_t width, int64_t height,
-                            double alpha_min_d, double alpha_max_d, double t_min_d, torch::Tensor& render,
-                            torch::Tensor& depth, torch::Tensor& alpha_img,
-                            torch::Tensor& final_t, torch::Tensor& n_contrib, torch::Tensor& slot_weight,
-                            torch::Tensor& slot_count) {
+void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const torch::Tensor& feats, int64_t width,
+                            int64_t height, double alpha_min_d, double alpha_max_d, double t_min_d,
+                            torch::Tensor& render, torch::Tensor& depth, torch::Tensor& alpha_img,
+                            torch::Tensor& final_t, torch::Tensor& slot_weight, torch::Tensor& slot_count,
+                            Trace* trace) {
+  using V = typename Simd<T>::V;
+  using I = typename Simd<T>::I;
+  using Int = typename Simd<T>::Int;
   const int64_t F = NF > 0 ? NF : feats.size(1);  // compile-time channel count for the common cases
-  const int64_t C = F + 1;  // feats then alpha
-  const T* m2 = means2d.data_ptr<T>();
-  const T* cn = conics.data_ptr<T>();
-  const T* opac = opacities.data_ptr<T>();
   const T* ft = feats.data_ptr<T>();
   T* rend = render.data_ptr<T>();  // [H, W, F - 1]: the features
   T* dimg = depth.data_ptr<T>();   // [H, W]: the last composited channel
   T* aimg = alpha_img.data_ptr<T>();
   T* ftT = final_t.data_ptr<T>();
-  int32_t* nc = n_contrib.data_ptr<int32_t>();
   T* sw = slot_weight.data_ptr<T>();
   int32_t* sc = slot_count.data_ptr<int32_t>();
   const int64_t* tstart = bins.tile_starts.data_ptr<int64_t>();
@@ -459,106 +680,177 @@ void composite_forward_impl(const Bins& bins, const torch::Tensor& means2d, cons
   const T log_cut = static_cast<T>(log_cut_d);
   const int64_t n_tiles = bins.tiles_x * bins.tiles_y;
   const int64_t ts = bins.tile;
-#pragma omp parallel if (bins.sorted_gauss.size(0) >= kParallelMin)
+  const int64_t n_cols = (ts + kLanes - 1) / kLanes;  // chunks per tile row
+  const int64_t n_rows = n_cols * kLanes;  // rows rounded up to whole vectors
+  const int64_t stride = n_cols * kLanes;
+  const int64_t plane = ts * stride;
+  V lane;
+  for (int i = 0; i < kLanes; ++i) lane[i] = static_cast<T>(i);
+  const int64_t pairs = bins.sorted_gauss.size(0);
+  int32_t* pcodes = nullptr;
+  int64_t* tcodes = nullptr;
+  std::vector<CodeBuf> bufs(trace ? std::max(1, omp_get_max_threads()) : 0);
+  if (trace) {
+    trace->pair_codes = torch::empty({pairs}, torch::kInt32);
+    trace->tile_codes = torch::empty({n_tiles, 3}, torch::kInt64);
+    pcodes = trace->pair_codes.data_ptr<int32_t>();
+    tcodes = trace->tile_codes.data_ptr<int64_t>();
+  }
+#pragma omp parallel if (pairs >= kParallelMin)
   {
-    TileData<T> d;
-    std::vector<T> Tr(ts * ts), acc(ts * ts * C);
-    std::vector<int32_t> last(ts * ts);
-    std::vector<uint8_t> done(ts * ts);
-    std::vector<int32_t> row_alive(ts);  // pixels of each row not terminated yet
+    CodeBuf* buf = trace ? &bufs[omp_get_thread_num()] : nullptr;
+    // Per pixel of the tile (row-major, rows padded to whole chunks): transmittance, accumulated channels
+    // (channel-major), alive mask (padding and pixels outside the image are dead).
+    std::vector<T> Tr(plane), acc((F + 1) * plane), dxs(n_cols * kLanes), hdx2s(n_cols * kLanes);
+    std::vector<Int> live(plane);
+    std::vector<T> rowcs(n_rows), bdys(n_rows);  // per-row terms of the exponent
+    struct Chunk {
+      V e;          // exponent
+      I m;          // pixels to test
+      int32_t rc;   // tile row | chunk column << kRowBits
+      int32_t jj;   // Gaussian within the batch
+    };
+    std::vector<Chunk> act(kBatch * ts * n_cols);
+    std::vector<V> wsum(kBatch);
+    std::vector<int32_t> cnt(kBatch), n_codes(kBatch);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t k = tstart[t + 1] - tstart[t];
+      const int32_t* ids = sg + tstart[t];
       const int64_t tx = t % bins.tiles_x, ty = t / bins.tiles_x;
       const int64_t x0 = tx * ts, y0 = ty * ts;
-      const int64_t x1 = std::min(x0 + ts, width), y1 = std::min(y0 + ts, height);
-      const int64_t n_pix = (x1 - x0) * (y1 - y0);
+      const int64_t w = std::min(x0 + ts, width) - x0, h = std::min(y0 + ts, height) - y0;
       std::fill(Tr.begin(), Tr.end(), static_cast<T>(1));
       std::fill(acc.begin(), acc.end(), static_cast<T>(0));
-      std::fill(last.begin(), last.end(), 0);
-      std::fill(done.begin(), done.end(), 0);
-      if (k > 0) d.load(sg + tstart[t], k, m2, cn, opac, ft, F);
-      for (int64_t j = 0; j < k; ++j) {  // pairs behind a fully terminated tile keep these zeros
-        sw[ss[tstart[t] + j]] = 0;
-        sc[ss[tstart[t] + j]] = 0;
+      std::fill(live.begin(), live.end(), 0);
+      for (int64_t r = 0; r < h; ++r)
+        std::fill(live.begin() + r * stride, live.begin() + r * stride + w, static_cast<Int>(-1));
+      int64_t n_live = w * h;
+      if (buf) {
+        tcodes[3 * t] = omp_get_thread_num();
+        tcodes[3 * t + 1] = buf->size;
       }
-      int64_t n_done = 0;
-      std::fill(row_alive.begin(), row_alive.end(), static_cast<int32_t>(x1 - x0));
-      for (int64_t j = 0; j < k && n_done < n_pix; ++j) {
-        Footprint fp;
-        fp.init(d.mx[j], d.my[j], d.a[j], d.b[j], d.c[j], d.logop[j], log_cut_d, y0, y1);
-        T wsum = 0;
-        int32_t cnt = 0;
-        const T* f = &d.feat[j * F];
-        const T mxj = d.mx[j], myj = d.my[j], bj = d.b[j], cj = d.c[j], lop = d.logop[j];
-        const T ha = static_cast<T>(-0.5) * d.a[j];
-        for (int64_t y = fp.y_lo; y <= fp.y_hi; ++y) {
-          int64_t xa, xb;
-          if (row_alive[y - y0] == 0 || !fp.row(y, x0, x1, xa, xb)) continue;
-          // log(opacity) + power exactly as the reference: (-c dy^2/2 + log op) + (-a dx^2/2) + (-b dy) dx.
-          const T dy = (static_cast<T>(y) + static_cast<T>(0.5)) - myj;
-          const T rowc = static_cast<T>(-0.5) * cj * dy * dy + lop;
-          const T bdy = -bj * dy;
-          const int64_t prow = (y - y0) * ts - x0;
-          for (int64_t x = xa; x <= xb; ++x) {
-            const int64_t p = prow + x;
-            if (done[p]) continue;
-            const T dx = (static_cast<T>(x) + static_cast<T>(0.5)) - mxj;
-            const T e = (rowc + ha * dx * dx) + bdy * dx;
-            if (e < log_cut) continue;  // alpha certainly below alpha_min: skip the exp
-            if (!(e <= lop)) continue;  // power > 0
-            const T alpha = std::min(std::exp(std::max(e, floor_)), alpha_max);
-            if (!(alpha >= alpha_min)) continue;
-            const T t_next = Tr[p] * (1 - alpha);
-            if (!(t_next >= t_min)) {  // early termination: this one and all behind are dropped
-              done[p] = 1;
-              ++n_done;
-              --row_alive[y - y0];
-              continue;
+      int64_t j0 = 0;
+      for (; j0 < k && n_live > 0; j0 += kBatch) {
+        const int64_t nb = std::min(kBatch, k - j0);
+        // Pass 1.
+        int64_t n_act = 0;
+        for (int64_t jj = 0; jj < nb; ++jj) {
+          if (j0 + jj + 8 < k) {
+            __builtin_prefetch(&recs[ids[j0 + jj + 8]]);
+            __builtin_prefetch(ft + static_cast<int64_t>(ids[j0 + jj + 8]) * F);
+          }
+          const GaussRec<T>& g = recs[ids[j0 + jj]];
+          int64_t r_lo, r_hi, c_lo, c_hi;
+          if (!tile_box(g, x0, y0, w, h, r_lo, r_hi, c_lo, c_hi)) continue;
+          // log(opacity) + power exactly as the reference: (-c dy^2/2 + log op) + (-a dx^2/2) + (-b dy) dx,
+          // from per-column and per-row terms (computed kLanes columns / rows at a time).
+          for (int64_t c = c_lo; c <= c_hi; ++c) {
+            const V dx = ((lane + static_cast<T>(x0 + c * kLanes)) + static_cast<T>(0.5)) - g.mx;
+            vstore(&dxs[c * kLanes], dx);
+            vstore(&hdx2s[c * kLanes], V((g.ha * dx) * dx));
+          }
+          for (int64_t r = r_lo - r_lo % kLanes; r <= r_hi; r += kLanes) {
+            const V dy = ((lane + static_cast<T>(y0 + r)) + static_cast<T>(0.5)) - g.my;
+            vstore(&rowcs[r], V((static_cast<T>(-0.5) * g.c * dy) * dy + g.logop));
+            vstore(&bdys[r], V(-g.b * dy));
+          }
+          for (int64_t r = r_lo; r <= r_hi; ++r) {
+            for (int64_t c = c_lo; c <= c_hi; ++c) {
+              const int64_t p = r * stride + c * kLanes;
+              const V e = (rowcs[r] + vload<V>(&hdx2s[c * kLanes])) + bdys[r] * vload<V>(&dxs[c * kLanes]);
+              // e < log_cut: alpha certainly below alpha_min; e > log(opacity): power > 0 (also NaN).
+              // Terminated pixels are dead in `live`.
+              const I m = vload<I>(&live[p]) & (e >= log_cut) & (e <= g.logop);
+              act[n_act] = {e, m, static_cast<int32_t>(r | c << kRowBits), static_cast<int32_t>(jj)};
+              n_act += mask_bits(m) != 0;
             }
-            const T w = alpha * Tr[p];
-            T* a = &acc[p * C];
-            for (int64_t ch = 0; ch < F; ++ch) a[ch] += w * f[ch];
-            a[F] += w;
-            wsum += w;
-            cnt += 1;
-            Tr[p] = t_next;
-            last[p] = static_cast<int32_t>(j + 1);
           }
         }
-        const int64_t slot = ss[tstart[t] + j];
-        sw[slot] = wsum;
-        sc[slot] = cnt;
+        // Pass 2.
+        std::fill(wsum.begin(), wsum.end(), V{});
+        std::fill(cnt.begin(), cnt.end(), 0);
+        std::fill(n_codes.begin(), n_codes.end(), 0);
+        if (buf) buf->reserve(buf->size + n_act);
+        for (int64_t i = 0; i < n_act; ++i) {
+          const int64_t rc = act[i].rc, jj = act[i].jj;
+          const int64_t p = (rc & (kMaxTile - 1)) * stride + (rc >> kRowBits) * kLanes;
+          const V e = act[i].e;
+          I m = act[i].m & vload<I>(&live[p]);  // a pixel may have terminated since pass 1
+          const V ec = e < floor_ ? splat<V>(floor_) : (e > static_cast<T>(80) ? splat<V>(static_cast<T>(80)) : e);
+          V alpha = vexp(ec);
+          alpha = alpha_max < alpha ? splat<V>(alpha_max) : alpha;
+          m &= alpha >= alpha_min;
+          alpha = m ? alpha : V{};  // skipped lanes blend nothing (and make no denormals)
+          const V tr = vload<V>(&Tr[p]);
+          const V t_next = tr * (static_cast<T>(1) - alpha);
+          // Early termination: this Gaussian and all behind it are dropped for that pixel.
+          const I term = m & ~(t_next >= t_min);
+          if (const unsigned tb = mask_bits(term)) {
+            const int n_term = __builtin_popcount(tb);
+            n_live -= n_term;
+            vstore(&live[p], I(vload<I>(&live[p]) & ~term));
+            m &= ~term;
+          }
+          const unsigned mb = mask_bits(m);
+          cnt[jj] += __builtin_popcount(mb);
+          if (buf) {
+            buf->data[buf->size] = static_cast<uint32_t>(rc) | mb << kMaskShift;
+            buf->size += mb != 0;
+            n_codes[jj] += mb != 0;
+          }
+          const V wgt = m ? alpha * tr : V{};
+          const T* f = ft + static_cast<int64_t>(ids[j0 + jj]) * F;
+          // + 0 where not blended: bitwise a no-op (features are finite), cheaper than a blend
+          for (int64_t ch = 0; ch < F; ++ch) {
+            T* a = &acc[ch * plane + p];
+            vstore(a, V(vload<V>(a) + wgt * f[ch]));
+          }
+          T* a = &acc[F * plane + p];
+          vstore(a, V(vload<V>(a) + wgt));
+          wsum[jj] += wgt;
+          vstore(&Tr[p], V(m ? t_next : tr));
+        }
+        for (int64_t jj = 0; jj < nb; ++jj) {
+          const int64_t slot = ss[tstart[t] + j0 + jj];
+          sw[slot] = hsum<T>(wsum[jj]);
+          sc[slot] = cnt[jj];
+          if (buf) pcodes[tstart[t] + j0 + jj] = n_codes[jj];
+        }
       }
-      for (int64_t y = y0; y < y1; ++y)
-        for (int64_t x = x0; x < x1; ++x) {
-          const int64_t p = (y - y0) * ts + (x - x0);
-          T* o = rend + (y * width + x) * (F - 1);
-          for (int64_t ch = 0; ch < F - 1; ++ch) o[ch] = acc[p * C + ch];
-          dimg[y * width + x] = acc[p * C + F - 1];
-          aimg[y * width + x] = acc[p * C + F];
-          ftT[y * width + x] = Tr[p];
-          nc[y * width + x] = last[p];
+      for (int64_t j = j0; j < k; ++j) {  // behind a fully terminated tile
+        sw[ss[tstart[t] + j]] = 0;
+        sc[ss[tstart[t] + j]] = 0;
+        if (buf) pcodes[tstart[t] + j] = 0;
+      }
+      if (buf) tcodes[3 * t + 2] = buf->size;
+      for (int64_t r = 0; r < h; ++r)
+        for (int64_t x = 0; x < w; ++x) {
+          const int64_t p = r * stride + x, q = (y0 + r) * width + x0 + x;
+          T* o = rend + q * (F - 1);
+          for (int64_t ch = 0; ch < F - 1; ++ch) o[ch] = acc[ch * plane + p];
+          dimg[q] = acc[(F - 1) * plane + p];
+          aimg[q] = acc[F * plane + p];
+          ftT[q] = Tr[p];
         }
     }
   }
+  if (trace)
+    for (auto& b : bufs) trace->codes.push_back(b.release());
 }
 
 template <typename T, int NF>
-void composite_backward_impl(const Bins& bins, const torch::Tensor& means2d, const torch::Tensor& conics,
-                             const torch::Tensor& opacities, const torch::Tensor& feats, int64_t width,
-                             int64_t height, double alpha_min_d, double alpha_max_d, const torch::Tensor& final_t,
-                             const torch::Tensor& n_contrib, const torch::Tensor& grad_render,
-                             const torch::Tensor& grad_depth, const torch::Tensor& grad_alpha, torch::Tensor& slot_grad) {
+void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRec<T>* recs,
+                             const torch::Tensor& feats, int64_t width, int64_t height, double alpha_max_d,
+                             const torch::Tensor& final_t, const torch::Tensor& grad_render,
+                             const torch::Tensor& grad_depth, const torch::Tensor& grad_alpha,
+                             torch::Tensor& slot_grad) {
+  using V = typename Simd<T>::V;
+  using I = typename Simd<T>::I;
   const int64_t F = NF > 0 ? NF : feats.size(1);
-  const int64_t C = F + 1;
   const int64_t R = 6 + F;  // mean x, mean y, conic a, b, c, opacity, feats
-  const T* m2 = means2d.data_ptr<T>();
-  const T* cn = conics.data_ptr<T>();
-  const T* opac = opacities.data_ptr<T>();
   const T* ft = feats.data_ptr<T>();
   const T* ftT = final_t.data_ptr<T>();
-  const int32_t* nc = n_contrib.data_ptr<int32_t>();
   // Output gradients; an empty tensor stands for zeros (that output was not used).
   const T* grend = grad_render.numel() ? grad_render.data_ptr<T>() : nullptr;
   const T* gdep = grad_depth.numel() ? grad_depth.data_ptr<T>() : nullptr;
@@ -567,96 +859,113 @@ void composite_backward_impl(const Bins& bins, const torch::Tensor& means2d, con
   const int64_t* tstart = bins.tile_starts.data_ptr<int64_t>();
   const int32_t* sg = bins.sorted_gauss.data_ptr<int32_t>();
   const int64_t* ss = bins.sorted_slot.data_ptr<int64_t>();
-  const T alpha_min = static_cast<T>(alpha_min_d), alpha_max = static_cast<T>(alpha_max_d);
+  const int32_t* pcodes = trace.pair_codes.data_ptr<int32_t>();
+  const int64_t* tcodes = trace.tile_codes.data_ptr<int64_t>();
+  std::vector<const uint32_t*> codes;
+  for (const auto& c : trace.codes) codes.push_back(reinterpret_cast<const uint32_t*>(c.data_ptr<int32_t>()));
+  const T alpha_max = static_cast<T>(alpha_max_d);
   const T floor_ = static_cast<T>(kExpFloor);
-  const double log_cut_d = std::log(alpha_min_d) - kLogMargin;
-  const T log_cut = static_cast<T>(log_cut_d);
   const int64_t n_tiles = bins.tiles_x * bins.tiles_y;
   const int64_t ts = bins.tile;
+  const int64_t n_cols = (ts + kLanes - 1) / kLanes;
+  const int64_t stride = n_cols * kLanes;
+  const int64_t plane = ts * stride;
   const T tiny = std::numeric_limits<T>::min();
+  V lane;
+  I lane_bit;
+  for (int i = 0; i < kLanes; ++i) {
+    lane[i] = static_cast<T>(i);
+    lane_bit[i] = 1 << i;
+  }
 #pragma omp parallel if (bins.sorted_gauss.size(0) >= kParallelMin)
   {
-    TileData<T> d;
-    std::vector<T> Tr(ts * ts), S(ts * ts), go(ts * ts * C), mo(6 + F);
-    std::vector<int32_t> last(ts * ts), row_last(ts);
+    // Per pixel: transmittance in front of the current Gaussian, S = sum of w g behind it and the output
+    // gradients (channel-major).
+    std::vector<T> Tr(plane), S(plane), go((F + 1) * plane);
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
       const int64_t k = tstart[t + 1] - tstart[t];
       if (k == 0) continue;
+      const int32_t* ids = sg + tstart[t];
       const int64_t tx = t % bins.tiles_x, ty = t / bins.tiles_x;
       const int64_t x0 = tx * ts, y0 = ty * ts;
-      const int64_t x1 = std::min(x0 + ts, width), y1 = std::min(y0 + ts, height);
-      d.load(sg + tstart[t], k, m2, cn, opac, ft, F);
-      int32_t max_last = 0;
-      std::fill(row_last.begin(), row_last.end(), 0);
-      for (int64_t y = y0; y < y1; ++y)
-        for (int64_t x = x0; x < x1; ++x) {
-          const int64_t p = (y - y0) * ts + (x - x0);
-          Tr[p] = ftT[y * width + x];
-          S[p] = 0;
-          last[p] = nc[y * width + x];
-          max_last = std::max(max_last, last[p]);
-          row_last[y - y0] = std::max(row_last[y - y0], last[p]);
-          const int64_t q = y * width + x;
-          for (int64_t ch = 0; ch < F - 1; ++ch) go[p * C + ch] = grend ? grend[q * (F - 1) + ch] : static_cast<T>(0);
-          go[p * C + F - 1] = gdep ? gdep[q] : static_cast<T>(0);
-          go[p * C + F] = galp ? galp[q] : static_cast<T>(0);
+      const int64_t w = std::min(x0 + ts, width) - x0, h = std::min(y0 + ts, height) - y0;
+      std::fill(Tr.begin(), Tr.end(), static_cast<T>(0));
+      std::fill(S.begin(), S.end(), static_cast<T>(0));
+      std::fill(go.begin(), go.end(), static_cast<T>(0));
+      for (int64_t r = 0; r < h; ++r)
+        for (int64_t x = 0; x < w; ++x) {
+          const int64_t p = r * stride + x, q = (y0 + r) * width + x0 + x;
+          Tr[p] = ftT[q];
+          if (grend)
+            for (int64_t ch = 0; ch < F - 1; ++ch) go[ch * plane + p] = grend[q * (F - 1) + ch];
+          if (gdep) go[(F - 1) * plane + p] = gdep[q];
+          if (galp) go[F * plane + p] = galp[q];
         }
+      // The forward's blended chunks, back to front, Gaussian by Gaussian.
+      const uint32_t* tile_codes = codes[tcodes[3 * t]];
+      int64_t end = tcodes[3 * t + 2];
       for (int64_t j = k - 1; j >= 0; --j) {
-        std::fill(mo.begin(), mo.end(), static_cast<T>(0));
-        if (j < max_last) {
-          Footprint fp;
-          fp.init(d.mx[j], d.my[j], d.a[j], d.b[j], d.c[j], d.logop[j], log_cut_d, y0, y1);
-          const T* f = &d.feat[j * F];
-          const T mxj = d.mx[j], myj = d.my[j], bj = d.b[j], cj = d.c[j], lop = d.logop[j];
-          const T ha = static_cast<T>(-0.5) * d.a[j];
-          T m0 = 0, m1 = 0, m2s = 0, m3 = 0, m4 = 0, m5 = 0;
-          for (int64_t y = fp.y_lo; y <= fp.y_hi; ++y) {
-            int64_t xa, xb;
-            if (j >= row_last[y - y0] || !fp.row(y, x0, x1, xa, xb)) continue;
-            const T dy = (static_cast<T>(y) + static_cast<T>(0.5)) - myj;
-            const T rowc = static_cast<T>(-0.5) * cj * dy * dy + lop;
-            const T bdy = -bj * dy;
-            const int64_t prow = (y - y0) * ts - x0;
-            for (int64_t x = xa; x <= xb; ++x) {
-              const int64_t p = prow + x;
-              if (j >= last[p]) continue;
-              const T dx = (static_cast<T>(x) + static_cast<T>(0.5)) - mxj;
-              const T e = (rowc + ha * dx * dx) + bdy * dx;
-              if (e < log_cut) continue;
-              if (!(e <= lop)) continue;
-              const T alpha = std::min(std::exp(std::max(e, floor_)), alpha_max);
-              if (!(alpha >= alpha_min)) continue;
-              const T transmit = 1 - alpha;
-              const T Tb = Tr[p] / transmit;  // transmittance in front of Gaussian j
-              Tr[p] = Tb;
-              const T w = alpha * Tb;
-              const T* g_o = &go[p * C];
-              T g = g_o[F];
-              for (int64_t ch = 0; ch < F; ++ch) g += g_o[ch] * f[ch];
-              const T wg = w * g;
-              T G = wg - S[p] * alpha / transmit;
-              S[p] += wg;
-              if (!(alpha < alpha_max)) G = 0;
-              m0 += G;
-              m1 += G * dx;
-              m2s += G * dy;
-              m3 += G * dx * dx;
-              m4 += G * dx * dy;
-              m5 += G * dy * dy;
-              for (int64_t ch = 0; ch < F; ++ch) mo[6 + ch] += w * g_o[ch];
-            }
-          }
-          mo[0] = m0; mo[1] = m1; mo[2] = m2s; mo[3] = m3; mo[4] = m4; mo[5] = m5;
-        }
         T* out = sgrad + ss[tstart[t] + j] * R;
-        out[0] = d.a[j] * mo[1] + d.b[j] * mo[2];
-        out[1] = d.b[j] * mo[1] + d.c[j] * mo[2];
-        out[2] = static_cast<T>(-0.5) * mo[3];
-        out[3] = -mo[4];
-        out[4] = static_cast<T>(-0.5) * mo[5];
-        out[5] = mo[0] / std::max(d.op[j], tiny);
-        for (int64_t ch = 0; ch < F; ++ch) out[6 + ch] = mo[6 + ch];
+        const int64_t n_codes = pcodes[tstart[t] + j];
+        if (n_codes == 0) {  // blended nothing
+          std::fill(out, out + R, static_cast<T>(0));
+          continue;
+        }
+        if (j >= 8) {
+          __builtin_prefetch(&recs[ids[j - 8]]);
+          __builtin_prefetch(ft + static_cast<int64_t>(ids[j - 8]) * F);
+        }
+        const GaussRec<T>& g = recs[ids[j]];
+        const T* f = ft + static_cast<int64_t>(ids[j]) * F;
+        // Per-lane sums of dL/dpower G, G dx, G dy, G dx^2, G dx dy, G dy^2 and of w dL/dout per channel.
+        V m0 = {}, m1 = {}, m2 = {}, m3 = {}, m4 = {}, m5 = {};
+        V gf[NF > 0 ? NF : 64] = {};
+        for (int64_t i = end - n_codes; i < end; ++i) {
+          const uint32_t code = tile_codes[i];
+          const int64_t r = code & (kMaxTile - 1), c = (code >> kRowBits) & (kMaxTile - 1);
+          const int64_t p = r * stride + c * kLanes;
+          const I m = (splat<I>(static_cast<typename Simd<T>::Int>(code >> kMaskShift)) & lane_bit) != 0;
+          // alpha exactly as in the forward
+          const T dy = (static_cast<T>(y0 + r) + static_cast<T>(0.5)) - g.my;
+          const T rowc = static_cast<T>(-0.5) * g.c * dy * dy + g.logop;
+          const T bdy = -g.b * dy;
+          const V dx = ((lane + static_cast<T>(x0 + c * kLanes)) + static_cast<T>(0.5)) - g.mx;
+          const V e = (rowc + V((g.ha * dx) * dx)) + bdy * dx;
+          const V ec = e < floor_ ? splat<V>(floor_) : (e > static_cast<T>(80) ? splat<V>(static_cast<T>(80)) : e);
+          V alpha = vexp(ec);
+          alpha = alpha_max < alpha ? splat<V>(alpha_max) : alpha;
+          alpha = m ? alpha : V{};  // other lanes: transmit 1, weight 0
+          const V transmit = static_cast<T>(1) - alpha;
+          const V Tb = vload<V>(&Tr[p]) / transmit;  // transmittance in front of Gaussian j
+          vstore(&Tr[p], Tb);
+          const V wgt = alpha * Tb;
+          V gsum = vload<V>(&go[F * plane + p]);
+          for (int64_t ch = 0; ch < F; ++ch) gsum += vload<V>(&go[ch * plane + p]) * f[ch];
+          const V wg = wgt * gsum;
+          const V s = vload<V>(&S[p]);
+          V G = wg - s * alpha / transmit;
+          vstore(&S[p], V(m ? s + wg : s));
+          G = (m & (alpha < alpha_max)) ? G : V{};
+          const V Gdx = G * dx;
+          const V Gdy = G * dy;
+          m0 += G;
+          m1 += Gdx;
+          m2 += Gdy;
+          m3 += Gdx * dx;
+          m4 += Gdx * dy;
+          m5 += Gdy * dy;
+          for (int64_t ch = 0; ch < F; ++ch) gf[ch] += m ? wgt * vload<V>(&go[ch * plane + p]) : V{};
+        }
+        end -= n_codes;
+        const T s1 = hsum<T>(m1), s2 = hsum<T>(m2);
+        out[0] = g.a * s1 + g.b * s2;
+        out[1] = g.b * s1 + g.c * s2;
+        out[2] = static_cast<T>(-0.5) * hsum<T>(m3);
+        out[3] = -hsum<T>(m4);
+        out[4] = static_cast<T>(-0.5) * hsum<T>(m5);
+        out[5] = hsum<T>(m0) / std::max(g.op, tiny);
+        for (int64_t ch = 0; ch < F; ++ch) out[6 + ch] = hsum<T>(gf[ch]);
       }
     }
   }
@@ -722,35 +1031,39 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
 }
 
 // Bins and composites. Returns render [H, W, F-1], depth [H, W], alpha [H, W], weight_sum [N],
-// pixel_count [N] int32, and the state
-// the backward needs: final_t [H, W], n_contrib [H, W] int32, tile_starts, sorted_gauss, sorted_slot,
-// gauss_starts.
+// pixel_count [N] int32, then, when `for_backward`, the state the backward needs: final_t [H, W],
+// tile_starts, sorted_gauss, sorted_slot, gauss_starts, the Gaussian records, pair_codes, tile_codes, and
+// the code buffers.
 std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                              torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
                                              int64_t width, int64_t height, int64_t tile_size, double alpha_min,
-                                             double alpha_max, double t_min) {
+                                             double alpha_max, double t_min, bool for_backward) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &depths, &radii}) check_cpu(*p, "input");
   const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
   TORCH_CHECK(F >= 1 && F <= 64, "the CPU rasterizer composites 1 to 64 channels (depth included), got ", F);
+  TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
   auto opts = means2d.options();
   auto render = torch::empty({height, width, F - 1}, opts);
   auto depth = torch::empty({height, width}, opts);
   auto alpha = torch::empty({height, width}, opts);
   auto final_t = torch::empty({height, width}, opts);
-  auto n_contrib = torch::empty({height, width}, opts.dtype(torch::kInt32));
   auto weight_sum = torch::empty({n}, opts);
   auto pixel_count = torch::empty({n}, opts.dtype(torch::kInt32));
   Bins bins;
+  Trace trace;
+  torch::Tensor recs;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
-    bins = bin_impl<scalar_t>(means2d, depths, radii, width, height, tile_size);
+    recs = gauss_records<scalar_t>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
+    bins = bin_impl<scalar_t>(means2d, depths, radii, records_of<scalar_t>(recs), width, height, tile_size);
     const int64_t pairs = bins.sorted_gauss.size(0);
     auto slot_weight = torch::empty({pairs}, opts);
     auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
     auto run = [&](auto nf) {
-      composite_forward_impl<scalar_t, decltype(nf)::value>(bins, means2d, conics, opacities, feats, width, height,
-                                                            alpha_min, alpha_max, t_min, render, depth, alpha, final_t, n_contrib,
-                                                            slot_weight, slot_count);
+      composite_forward_impl<scalar_t, decltype(nf)::value>(bins, records_of<scalar_t>(recs), feats, width, height,
+                                                            alpha_min, alpha_max, t_min, render, depth, alpha,
+                                                            final_t, slot_weight, slot_count,
+                                                            for_backward ? &trace : nullptr);
     };
     if (F == 4) run(std::integral_constant<int, 4>());
     else if (F == 2) run(std::integral_constant<int, 2>());
@@ -758,44 +1071,54 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
     reduce_slots<scalar_t>(bins.gauss_starts, slot_weight, weight_sum);
     reduce_slots<int32_t>(bins.gauss_starts, slot_count, pixel_count);
   });
-  return {render, depth, alpha, weight_sum, pixel_count, final_t, n_contrib, bins.tile_starts, bins.sorted_gauss,
-          bins.sorted_slot, bins.gauss_starts};
+  std::vector<torch::Tensor> out = {render, depth, alpha, weight_sum, pixel_count};
+  if (for_backward) {
+    for (const auto& t : {final_t, bins.tile_starts, bins.sorted_gauss, bins.sorted_slot, bins.gauss_starts, recs,
+                          trace.pair_codes, trace.tile_codes})
+      out.push_back(t);
+    for (const auto& t : trace.codes) out.push_back(t);
+  }
+  return out;
 }
 
-// Returns grad means2d [N, 2], conics [N, 3], opacities [N], feats [N, F].
+// Takes composite_forward's state; returns grad means2d [N, 2], conics [N, 3], opacities [N], feats [N, F].
 std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                               torch::Tensor feats, int64_t width, int64_t height, int64_t tile_size,
-                                              double alpha_min, double alpha_max, torch::Tensor final_t,
-                                              torch::Tensor n_contrib, torch::Tensor tile_starts,
-                                              torch::Tensor sorted_gauss, torch::Tensor sorted_slot,
-                                              torch::Tensor gauss_starts, torch::Tensor grad_render,
-                                              torch::Tensor grad_depth, torch::Tensor grad_alpha) {
+                                              double alpha_max, std::vector<torch::Tensor> state,
+                                              torch::Tensor grad_render, torch::Tensor grad_depth,
+                                              torch::Tensor grad_alpha) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &grad_render, &grad_depth, &grad_alpha})
     check_cpu(*p, "input");
+  TORCH_CHECK(state.size() >= 8, "composite_backward: incomplete forward state");
   const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
+  const torch::Tensor& final_t = state[0];
   Bins bins;
   bins.tile = tile_size;
   bins.tiles_x = (width + tile_size - 1) / tile_size;
   bins.tiles_y = (height + tile_size - 1) / tile_size;
-  bins.tile_starts = tile_starts;
-  bins.sorted_gauss = sorted_gauss;
-  bins.sorted_slot = sorted_slot;
-  bins.gauss_starts = gauss_starts;
+  bins.tile_starts = state[1];
+  bins.sorted_gauss = state[2];
+  bins.sorted_slot = state[3];
+  bins.gauss_starts = state[4];
+  const torch::Tensor& recs = state[5];
+  Trace trace;
+  trace.pair_codes = state[6];
+  trace.tile_codes = state[7];
+  trace.codes.assign(state.begin() + 8, state.end());
   auto opts = means2d.options();
   auto grads = torch::empty({n, 6 + F}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
-    auto slot_grad = torch::empty({sorted_gauss.size(0), 6 + F}, opts);
+    auto slot_grad = torch::empty({bins.sorted_gauss.size(0), 6 + F}, opts);
     auto run = [&](auto nf) {
-      composite_backward_impl<scalar_t, decltype(nf)::value>(bins, means2d, conics, opacities, feats, width, height,
-                                                             alpha_min, alpha_max, final_t, n_contrib, grad_render,
-                                                             grad_depth, grad_alpha,
-                                                             slot_grad);
+      composite_backward_impl<scalar_t, decltype(nf)::value>(bins, trace, records_of<scalar_t>(recs), feats, width,
+                                                             height, alpha_max, final_t, grad_render, grad_depth,
+                                                             grad_alpha, slot_grad);
     };
     if (F == 4) run(std::integral_constant<int, 4>());
     else if (F == 2) run(std::integral_constant<int, 2>());
     else run(std::integral_constant<int, 0>());
-    reduce_slots<scalar_t>(gauss_starts, slot_grad, grads);
+    reduce_slots<scalar_t>(bins.gauss_starts, slot_grad, grads);
   });
   using torch::indexing::Slice;
   return {grads.index({Slice(), Slice(0, 2)}), grads.index({Slice(), Slice(2, 5)}), grads.index({Slice(), 5}),
