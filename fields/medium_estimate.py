@@ -39,8 +39,6 @@ class MediumEstimate:
     """[3]"""
     clean_colors: Tensor
     """[P, 3] J_p of every input point (points without enough observations keep their input colour)."""
-    observations: int
-    """Number of (point, view) observations the fit used."""
     fitted_points: int
     """Points with at least `min_views` observations (the only ones that constrain the medium)."""
 
@@ -82,7 +80,7 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     beta_d, beta_b, b_inf, clean = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, iterations)
     colors = point_colors.detach().float().clone()
     colors[fitted] = clean
-    return MediumEstimate(beta_d, beta_b, b_inf, colors, int(keep.sum()), len(fitted))
+    return MediumEstimate(beta_d, beta_b, b_inf, colors, len(fitted))
 
 
 def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor, b_inf: Tensor,

@@ -19,8 +19,9 @@ from uw3dgs.cameras import Camera
 from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
+from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
-from uw3dgs.engine.optimizers import ParamGroupConfig
+from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_image
 from uw3dgs.fields.medium_estimate import estimate_medium
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
@@ -55,12 +56,16 @@ class UW3DGSModel(GaussianSplattingModel):
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
             self.medium = MediumGrid.around(config.medium, scene.points, centers)
-            if config.medium.init == "estimate":
-                self._start_from_estimate(scene, train_indices)
+        # the estimate runs before the first training step, not here: a resumed run or a model rebuilt for
+        # uw-eval gets its medium from the checkpoint and must not pay for a fit it throws away
+        self._estimate_inputs = (scene, train_indices) if self.medium is not None and \
+            config.medium.init == "estimate" else None
 
-    def _start_from_estimate(self, scene: SceneData, train_indices: list[int]) -> None:
+    def start_from_estimate(self) -> None:
         """Medium from the initial points' colours across the training views; Gaussian colours de-hazed."""
-        assert self.medium is not None
+        if self._estimate_inputs is None or self.medium is None:
+            return
+        (scene, train_indices), self._estimate_inputs = self._estimate_inputs, None
         mc = self.config.medium
         estimate = estimate_medium(scene.points, scene.point_colors, [scene.cameras[i] for i in train_indices],
                                    [scene.images[i] for i in train_indices], self.dataset_scale,
@@ -71,6 +76,9 @@ class UW3DGSModel(GaussianSplattingModel):
         if learned:  # with beta pinned at the prior, the estimate's de-hazed colours would not match it
             with torch.no_grad():
                 self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
+
+    def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
+        return [MediumEstimateStart(self), *super().get_training_callbacks(optimizers, max_num_iterations)]
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()
@@ -187,6 +195,19 @@ class UW3DGSModel(GaussianSplattingModel):
         if "clean_image" in batch:
             images["gt_clean"] = batch["clean_image"]
         return images
+
+
+class MediumEstimateStart(TrainingCallback):
+    """Before step 1 of a fresh run (a resumed run starts later), start from the point-based medium estimate."""
+
+    name = "medium_estimate_start"
+
+    def __init__(self, model: UW3DGSModel):
+        self.model = model
+
+    def before_step(self, step: int) -> None:
+        if step == 1:
+            self.model.start_from_estimate()
 
 
 def uw3dgs_optimizers() -> dict[str, ParamGroupConfig]:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from uw3dgs.cameras import Camera
-from uw3dgs.fields.medium_estimate import fit_medium, observe_points
+from uw3dgs.fields.medium_estimate import estimate_medium, fit_medium, observe_points
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -45,6 +46,14 @@ def test_observe_points_reads_the_projected_pixel_and_the_range():
     torch.testing.assert_close(ranges, torch.tensor([e[2] for e in expected], dtype=torch.float32))
 
 
+def test_estimate_without_multi_view_points_names_the_fix():
+    cams = [look_at_camera([0.0, 0.0, 5.0]), look_at_camera([1.0, 0.5, 3.0])]
+    images = [torch.rand(30, 40, 3), torch.rand(30, 40, 3)]
+    points = torch.tensor([[0.0, 0.0, 9.0], [0.1, 0.0, 0.0]])  # behind both cameras; seen by 2 < 3 views
+    with pytest.raises(ValueError, match="--model.medium.init prior"):
+        estimate_medium(points, torch.rand(2, 3), cams, images, dataset_scale=1.0)
+
+
 def test_fit_recovers_a_known_medium_from_exact_observations():
     """Points seen at several ranges each (2-12 units): exact data pins all nine medium numbers."""
     g = torch.Generator().manual_seed(0)
@@ -65,7 +74,8 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     """`--model.medium.init estimate`: the model starts from the fit, the same everywhere, colours de-hazed."""
     import dataclasses
 
-    from uw3dgs.fields.medium_estimate import estimate_medium
+    from uw3dgs.fields.medium import softplus_inverse
+    from uw3dgs.methods.uw3dgs import MediumEstimateStart
     from uw3dgs.registry import METHODS
     from uw3dgs.render.sh import rgb_to_sh
 
@@ -76,6 +86,12 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     datamanager = base.datamanager.setup(data=None)
     scene, train = datamanager.scene, datamanager.train_indices
     model = model_config.setup(scene=scene, train_indices=train)
+    prior = torch.tensor(medium.beta_prior)
+    torch.testing.assert_close(model.medium.beta_d.bias.detach(), softplus_inverse(prior))  # no fit until training
+    start = next(cb for cb in model.get_training_callbacks(None, 10) if isinstance(cb, MediumEstimateStart))
+    start.before_step(2)  # a resumed run: the checkpoint has the medium
+    torch.testing.assert_close(model.medium.beta_d.bias.detach(), softplus_inverse(prior))
+    start.before_step(1)  # a fresh run
     expected = estimate_medium(scene.points, scene.point_colors, [scene.cameras[i] for i in train],
                                [scene.images[i] for i in train], scene.dataset_scale, iterations=200)
     beta_d, beta_b = model.medium.betas(torch.rand(500, 3) * (model.medium.box_max - model.medium.box_min)
@@ -87,5 +103,4 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     assert expected.fitted_points > 0.5 * len(scene.points)
     # the fit explains the water: every channel's attenuation is closer to the truth than the prior is
     truth = torch.tensor(scene.gt.medium["beta_D"])
-    prior = torch.tensor(medium.beta_prior)
     assert ((expected.beta_d - truth).abs() < (prior - truth).abs()).all()
