@@ -37,7 +37,8 @@ class MediumGridConfig(InstantiateConfig):
     components: int = 16
     """VM components R per mode."""
     beta_prior: RGB = (0.1, 0.15, 0.2)
-    """Initial value of beta_D and beta_B (R, G, B) per dataset unit; L_beta pulls toward it."""
+    """Initial value of beta_D and beta_B (R, G, B) per dataset unit, and L_beta's pull target with
+    init 'prior' (with 'estimate' the estimate replaces it as both)."""
     b_inf_init: RGB = (0.5, 0.5, 0.5)
     """Initial veiling light B_inf (RGB)."""
     init_std: float = 0.1
@@ -49,10 +50,10 @@ class MediumGridConfig(InstantiateConfig):
     learn_beta: bool = True
     """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
     init: Literal["prior", "estimate"] = "estimate"
-    """Starting medium: 'estimate' (default) = a homogeneous
-    medium fitted to the initial points' colours across the training views, the Gaussians' colours
-    de-hazed to match (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' =
-    beta_prior and b_inf_init everywhere, colours as they are (the paper)."""
+    """Starting medium: 'estimate' (default) = a homogeneous medium fitted to the initial points' colours
+    across the training views, the Gaussians' colours de-hazed to match, and L_beta pulling toward it
+    (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' = beta_prior
+    and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper)."""
     estimate_iterations: int = 2000
     """Adam iterations per channel of the 'estimate' fit, after its coarse grid search."""
 
@@ -109,7 +110,9 @@ class MediumGrid(nn.Module):
         self.beta_d = VMField(*args)
         self.beta_b = VMField(*args)
         self.b_inf = nn.Parameter(torch.tensor(config.b_inf_init, dtype=torch.float32))
-        self.register_buffer("beta_prior", torch.tensor(config.beta_prior, dtype=torch.float32))
+        # L_beta's pull targets: beta_prior, or the data's estimate once `set_prior` is called
+        self.register_buffer("prior_d", torch.tensor(config.beta_prior, dtype=torch.float32))
+        self.register_buffer("prior_b", torch.tensor(config.beta_prior, dtype=torch.float32))
         if not config.learn_beta:
             self.beta_d.requires_grad_(False)
             self.beta_b.requires_grad_(False)
@@ -134,6 +137,12 @@ class MediumGrid(nn.Module):
                 field_.bias.copy_(softplus_inverse(beta.to(field_.bias).clamp_min(1e-4)))
         self.b_inf.copy_(b_inf.to(self.b_inf))
 
+    @torch.no_grad()
+    def set_prior(self, beta_d: Tensor, beta_b: Tensor) -> None:
+        """Make L_beta pull beta_D and beta_B toward these RGB values instead of beta_prior."""
+        self.prior_d.copy_(beta_d.to(self.prior_d))
+        self.prior_b.copy_(beta_b.to(self.prior_b))
+
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = {"medium_b_inf": [self.b_inf]}
         if self.config.learn_beta:
@@ -157,27 +166,28 @@ class MediumGrid(nn.Module):
         return beta_d.view(-1, s, 3).mean(dim=1), beta_b.view(-1, s, 3).mean(dim=1)
 
     def regularizer(self, points: Tensor, weights: Tensor | None = None) -> Tensor:
-        """L_beta: weighted pull of both fields toward beta_prior at `points`, plus 0.001 x VM factor norms."""
+        """L_beta: weighted pull of both fields toward their priors at `points`, plus 0.001 x VM factor norms."""
         beta_d, beta_b = self.betas(points)
-        dev = (beta_d - self.beta_prior).square().sum(-1) + (beta_b - self.beta_prior).square().sum(-1)
+        dev = (beta_d - self.prior_d).square().sum(-1) + (beta_b - self.prior_b).square().sum(-1)
         pull = dev.mean() if weights is None else (weights * dev).mean()
         return pull + 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
 
 
-def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, far_range: float,
-                          beta_d: Tensor, beta_b: Tensor, beta_b_far: Tensor, b_inf: Tensor,
-                          dataset_scale: float) -> dict[str, Tensor]:
+def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, beta_d: Tensor, beta_b: Tensor,
+                          b_inf: Tensor, dataset_scale: float) -> dict[str, Tensor]:
     """The formation model for one view.
 
     radiance [H, W, 3] = sum_i w_i c_i (no background), alpha [H, W] its coverage, ranges [H, W] the
-    expected range of the covered part (world units), beta_* [H, W, 3]. The uncovered part (1 - alpha)
-    sees open water up to `far_range`. Exponents use dataset units (range x dataset_scale).
+    expected range of the covered part (world units), beta_* [H, W, 3]. Exponents use dataset units
+    (range x dataset_scale). The uncovered part (1 - alpha) sees open water: no surface, so its
+    backscatter has saturated to B_inf. (Taking it at the scene's far bound instead, B_inf (1 - exp(-beta_B
+    z_far)), falls up to ~20% short of the veiling light that real open water shows when z_far is a few
+    attenuation lengths, and then biases B_inf.)
     """
     z = ranges[..., None] * dataset_scale
     attenuation = torch.exp(-beta_d * z)
     a = alpha[..., None]
-    open_water = 1 - torch.exp(-beta_b_far * far_range * dataset_scale)
-    backscatter = b_inf * (a * (1 - torch.exp(-beta_b * z)) + (1 - a) * open_water)
+    backscatter = b_inf * (a * (1 - torch.exp(-beta_b * z)) + (1 - a))
     return {"uwi": radiance * attenuation + backscatter, "attenuation": attenuation, "backscatter": backscatter}
 
 

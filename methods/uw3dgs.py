@@ -38,7 +38,7 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     use_medium: bool = True
     """False renders plain 3DGS (the no-medium ablation): the Gaussians must explain the water themselves."""
     beta_loss_weight: float = 0.05
-    """Weight of L_beta (pull of beta toward beta_prior at the Gaussian centres + VM factor norms)."""
+    """Weight of L_beta (pull of beta toward its prior at the Gaussian centres + VM factor norms)."""
     beta_loss_samples: int = 4096
     """Gaussian centres drawn per step to estimate L_beta's mean over all centres."""
     depth_loss_weight: float = 0.05
@@ -74,6 +74,9 @@ class UW3DGSModel(GaussianSplattingModel):
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)
         if learned:  # with beta pinned at the prior, the estimate's de-hazed colours would not match it
+            # L_beta then keeps the field near what the data says, not near a constant that may be far off
+            # (pulled toward beta_prior, red beta_D of the built-in scene drifted from 0.37 to 0.25; truth 0.40)
+            self.medium.set_prior(estimate.beta_d, estimate.beta_b)
             with torch.no_grad():
                 self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
@@ -101,11 +104,9 @@ class UW3DGSModel(GaussianSplattingModel):
         dirs = camera.ray_directions().reshape(-1, 3)
         origin = camera.center.to(dirs.dtype)
         beta_d, beta_b = self.medium.ray_betas(origin, dirs, ranges.reshape(-1))
-        _, beta_b_far = self.medium.ray_betas(origin, dirs, torch.full_like(ranges.reshape(-1), self.far_range))
         shape = (*ranges.shape, 3)
-        formed = form_underwater_image(out.render, out.alpha, ranges, self.far_range, beta_d.view(shape),
-                                       beta_b.view(shape), beta_b_far.view(shape), self.medium.b_inf,
-                                       self.dataset_scale)
+        formed = form_underwater_image(out.render, out.alpha, ranges, beta_d.view(shape), beta_b.view(shape),
+                                       self.medium.b_inf, self.dataset_scale)
         outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
                        beta_d=beta_d.view(shape), beta_b=beta_b.view(shape))
         return outputs

@@ -98,6 +98,9 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
                                         + model.medium.box_min)
     torch.testing.assert_close(beta_d, expected.beta_d.expand(500, 3), rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(beta_b, expected.beta_b.expand(500, 3), rtol=1e-4, atol=1e-6)
+    # L_beta now pulls toward the estimate, not toward beta_prior
+    torch.testing.assert_close(model.medium.prior_d, expected.beta_d, rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(model.medium.prior_b, expected.beta_b, rtol=1e-4, atol=1e-6)
     torch.testing.assert_close(model.medium.b_inf.detach(), expected.b_inf)
     torch.testing.assert_close(model.gaussians.sh0[:, 0], rgb_to_sh(expected.clean_colors.clamp(0, 1)))
     assert expected.fitted_points > 0.5 * len(scene.points)
