@@ -1,13 +1,15 @@
 """Rasterizer backends: forward and forward+backward time and peak memory on one shared random scene.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/rasterizer.py
+    python benchmarks/rasterizer.py --device cuda      # gsplat against the reference on a GPU
 
 Every (backend, Gaussians, resolution, pass) runs in its own subprocess: the peak memory is the growth
 of that process's max RSS (`resource.getrusage`) over its state just before the first render (scene
 built, extension loaded), so it counts torch's allocations, which tracemalloc does not see. With the
 two malloc variables above glibc keeps freed memory instead of returning it, so RSS is a faithful
-high-water mark of the heap. Times are medians of repeated runs after one warm-up run. Speed-ups are
-against the 'torch' reference measured in the same invocation.
+high-water mark of the heap. On CUDA the peak is `torch.cuda.max_memory_allocated` over the same span and
+every timed run ends with `torch.cuda.synchronize()`. Times are medians of repeated runs after one
+warm-up run. Speed-ups are against the 'torch' reference measured in the same invocation.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def make_scene(n: int, size: int, seed: int = 0):
     return (means, quats, scales, opacities, features), Camera(viewmat=torch.eye(4), K=K, width=size, height=size)
 
 
-def worker(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
+def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str) -> dict:
     from uw3dgs.render import RasterSettings, rasterize
 
     if backend == "cpu":
@@ -60,8 +62,12 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
         if load_extension() is None:
             return {"error": "extension did not build"}
     inputs, camera = make_scene(n, size)
+    inputs = tuple(t.to(device) for t in inputs)
+    camera = camera.to(device)
     settings = RasterSettings(backend=backend)
-    weights = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1))
+    weights = torch.rand(size, size, 3, generator=torch.Generator().manual_seed(1)).to(device)
+    cuda = device == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
 
     def once() -> None:
         if mode == "fwd":
@@ -73,19 +79,25 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
         out.means2d.retain_grad()
         ((out.render * weights).sum() + out.alpha.sum()).backward()
 
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    if cuda:
+        sync()
+        torch.cuda.reset_peak_memory_stats()
+        base = torch.cuda.memory_allocated()
+    else:
+        base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     times = []
     for i in range(repeats + 1):
         start = time.perf_counter()
         once()
-        if i:  # the first run is a warm-up
+        sync()
+        if i:  # the first run is a warm-up (and on CUDA the kernels' first load)
             times.append(time.perf_counter() - start)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base
-    return {"seconds": statistics.median(times), "peak_mib": peak / 1024, "runs": len(times)}
+    top = torch.cuda.max_memory_allocated() if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {"seconds": statistics.median(times), "peak_mib": (top - base) / 2**20, "runs": len(times)}
 
 
-def run_config(backend: str, n: int, size: int, mode: str, repeats: int) -> dict:
-    cmd = [sys.executable, __file__, "--worker", backend, str(n), str(size), mode, str(repeats)]
+def run_config(backend: str, n: int, size: int, mode: str, repeats: int, device: str) -> dict:
+    cmd = [sys.executable, __file__, "--worker", backend, str(n), str(size), mode, str(repeats), device]
     proc = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
     if proc.returncode != 0:
         return {"error": proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else f"rc {proc.returncode}"}
@@ -94,22 +106,27 @@ def run_config(backend: str, n: int, size: int, mode: str, repeats: int) -> dict
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
-    parser.add_argument("--backends", default=None, help="comma-separated (default: every registered CPU backend)")
+    parser.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where the tensors live")
+    parser.add_argument("--backends", default=None, help="comma-separated (default: every backend registered for "
+                        "--device)")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per config (reference: max(2, this // 2))")
     parser.add_argument(
         "--configs", default=None, help="comma-separated GAUSSIANSxSIZE, e.g. 100000x512 (default: all four)"
     )
     args = parser.parse_args()
     if args.worker:
-        backend, n, size, mode, repeats = args.worker
-        print(json.dumps(worker(backend, int(n), int(size), mode, int(repeats))))
+        backend, n, size, mode, repeats, device = args.worker
+        print(json.dumps(worker(backend, int(n), int(size), mode, int(repeats), device)))
         return
 
     from uw3dgs.render import BACKENDS
 
-    backends = args.backends.split(",") if args.backends else [b for b, v in BACKENDS.items() if "cpu" in v.devices]
-    if "cpu" not in backends and not args.backends:
+    if args.device == "cuda" and not torch.cuda.is_available():
+        parser.error("--device cuda: no CUDA device here")
+    registered = [b for b, v in BACKENDS.items() if args.device in v.devices]
+    backends = args.backends.split(",") if args.backends else registered
+    if args.device == "cpu" and "cpu" not in backends and not args.backends:
         backends.append("cpu")  # benchmark it even while it is not registered
     if "torch" in backends:
         backends.remove("torch")
@@ -123,7 +140,7 @@ def main() -> None:
         ref = {}
         for backend in backends:
             repeats = max(2, args.repeats // 2) if backend == "torch" else args.repeats
-            res = {mode: run_config(backend, n, size, mode, repeats) for mode in ("fwd", "fwd+bwd")}
+            res = {mode: run_config(backend, n, size, mode, repeats, args.device) for mode in ("fwd", "fwd+bwd")}
             if backend == "torch":
                 ref = res
             rows.append((backend, n, size, res, ref))

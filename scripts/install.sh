@@ -8,3 +8,6 @@ fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet -c constraints.txt torch==2.13.0
 .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+# gsplat (the kernels of the 'gsplat' CUDA backend, the `cuda` extra): a pure-Python wheel, installed here too so
+# that the CPU glue tests of tests/test_gsplat_backend.py run; it compiles CUDA only when used on a GPU.
+.venv/bin/python -m pip install --quiet -c constraints.txt "gsplat==1.5.3"

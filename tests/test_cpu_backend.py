@@ -6,7 +6,7 @@ import warnings
 
 import pytest
 import torch
-from test_rasterizer import Scene, brute_force, random_scene
+from test_rasterizer import Scene, assert_matches_reference, brute_force, random_scene, run_with_grads
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
@@ -27,27 +27,6 @@ def extension():
     return module
 
 
-def _run(fn, scene: Scene, dtype: torch.dtype, settings: RasterSettings, seed: int = 1):
-    """Outputs and gradients of a random linear loss over render, alpha, depth (and means2d's grad)."""
-    leaves = [t.to(dtype).clone().requires_grad_(True) for t in scene.inputs()]
-    cam = scene.camera
-    out = fn(*leaves, cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height, settings)
-    out.means2d.retain_grad()
-    gen = torch.Generator().manual_seed(seed)
-    loss = sum((t * torch.randn(t.shape, generator=gen, dtype=dtype)).sum() for t in (out.render, out.alpha, out.depth))
-    loss.backward()
-    grads = dict(zip(("means", "quats", "scales", "opacities", "features"), (t.grad for t in leaves), strict=True))
-    grads["means2d"] = out.means2d.grad
-    return out, grads
-
-
-def _close(actual: Tensor, expected: Tensor, dtype: torch.dtype, name: str) -> None:
-    """float64: 1e-9 relative; float32: 1e-4 relative, with an absolute floor of 1e-4 x the largest entry."""
-    rel = 1e-9 if dtype == F64 else 1e-4
-    scale = expected.abs().max().item() if expected.numel() else 0.0
-    torch.testing.assert_close(actual, expected, rtol=rel, atol=rel * max(scale, 1e-12), msg=name)
-
-
 SCENES = [(0, 60, 40, 30, 16), (1, 300, 40, 30, 8), (2, 2000, 97, 61, 16), (6, 4000, 128, 96, 16)]
 
 
@@ -58,19 +37,9 @@ def test_matches_reference(seed: int, n: int, width: int, height: int, tile: int
     the camera, off-screen, sub-pixel and screen-filling, alpha_max clamping and early termination)."""
     scene = random_scene(seed, n, width, height, channels=4 if seed == 1 else 3)
     settings = RasterSettings(tile_size=tile)
-    out, grads = _run(cpu_backend.rasterize_cpu, scene, dtype, settings)
-    ref, ref_grads = _run(rasterize_reference, scene, dtype, settings)
-    for name in ("render", "alpha", "depth", "means2d", "depths", "weight_sum"):
-        got, want = getattr(out, name), getattr(ref, name)
-        assert got.dtype == want.dtype and got.shape == want.shape, name
-        _close(got.detach(), want.detach(), dtype, name)
-    assert out.radii.dtype == out.pixel_count.dtype == torch.int32
-    assert torch.equal(out.radii, ref.radii)
-    assert torch.equal(out.pixel_count, ref.pixel_count)
-    assert not out.weight_sum.requires_grad and not out.pixel_count.requires_grad
-    for name, want in ref_grads.items():
-        assert grads[name] is not None and want.abs().sum() > 0, name
-        _close(grads[name], want, dtype, f"grad {name}")
+    out, grads = run_with_grads(cpu_backend.rasterize_cpu, scene, dtype, settings)
+    ref, ref_grads = run_with_grads(rasterize_reference, scene, dtype, settings)
+    assert_matches_reference(out, grads, ref, ref_grads, dtype)
     assert (ref.radii == 0).any() and (ref.depths < 0).any() and ref.alpha.max() > 0.9
 
 
@@ -116,13 +85,26 @@ def test_bitwise_deterministic_across_runs_and_threads() -> None:
     try:
         for n_threads in (threads, threads, 1, max(2, threads)):
             torch.set_num_threads(n_threads)
-            out, grads = _run(cpu_backend.rasterize_cpu, scene, torch.float32, settings)
+            out, grads = run_with_grads(cpu_backend.rasterize_cpu, scene, torch.float32, settings)
             runs.append([out.render, out.alpha, out.depth, out.weight_sum, out.pixel_count, *grads.values()])
     finally:
         torch.set_num_threads(threads)
     for other in runs[1:]:
         for a, b in zip(runs[0], other, strict=True):
             assert torch.equal(a, b)
+
+
+def test_no_grad_forward_equals_recording_forward() -> None:
+    """Under no_grad nothing is recorded for the backward; the outputs must not change by a single bit."""
+    scene = random_scene(9, 3000, 96, 80)
+    settings = RasterSettings()
+    recorded, _ = run_with_grads(cpu_backend.rasterize_cpu, scene, torch.float32, settings)
+    with torch.no_grad():
+        cam = scene.camera
+        plain = cpu_backend.rasterize_cpu(*(t.float() for t in scene.inputs()), cam.viewmat.float(), cam.K.float(),
+                                          cam.width, cam.height, settings)
+    for name in ("render", "alpha", "depth", "means2d", "radii", "depths", "weight_sum", "pixel_count"):
+        assert torch.equal(getattr(plain, name), getattr(recorded, name)), name
 
 
 def test_means2d_grad_and_empty_scene() -> None:

@@ -33,6 +33,45 @@ class Scene:
         return self.means, self.quats, self.scales, self.opacities, self.features
 
 
+def run_with_grads(fn, scene: Scene, dtype: torch.dtype, settings: RasterSettings, device: str = "cpu",
+                   seed: int = 1, **kwargs):  # fmt: skip
+    """Outputs and gradients of a random linear loss over render, alpha, depth (and means2d's grad)."""
+    leaves = [t.to(device, dtype).clone().requires_grad_(True) for t in scene.inputs()]
+    cam = scene.camera
+    out = fn(*leaves, cam.viewmat.to(device, dtype), cam.K.to(device, dtype), cam.width, cam.height, settings,
+             **kwargs)  # fmt: skip
+    out.means2d.retain_grad()
+    gen = torch.Generator().manual_seed(seed)
+    loss = sum((t * torch.randn(t.shape, generator=gen, dtype=dtype).to(device)).sum()
+               for t in (out.render, out.alpha, out.depth))  # fmt: skip
+    loss.backward()
+    grads = dict(zip(("means", "quats", "scales", "opacities", "features"), (t.grad for t in leaves), strict=True))
+    grads["means2d"] = out.means2d.grad
+    return out, grads
+
+
+def assert_close_rel(actual: Tensor, expected: Tensor, dtype: torch.dtype, name: str) -> None:
+    """float64: 1e-9 relative; float32: 1e-4 relative, with an absolute floor of 1e-4 x the largest entry."""
+    rel = 1e-9 if dtype == F64 else 1e-4
+    scale = expected.abs().max().item() if expected.numel() else 0.0
+    torch.testing.assert_close(actual, expected, rtol=rel, atol=rel * max(scale, 1e-12), msg=name)
+
+
+def assert_matches_reference(out, grads, ref, ref_grads, dtype: torch.dtype) -> None:
+    """Every output of a backend and every gradient equal the reference's (integers exactly)."""
+    for name in ("render", "alpha", "depth", "means2d", "depths", "weight_sum"):
+        got, want = getattr(out, name), getattr(ref, name)
+        assert got.dtype == want.dtype and got.shape == want.shape, name
+        assert_close_rel(got.detach(), want.detach(), dtype, name)
+    assert out.radii.dtype == out.pixel_count.dtype == torch.int32
+    assert torch.equal(out.radii, ref.radii)
+    assert torch.equal(out.pixel_count, ref.pixel_count), (out.pixel_count - ref.pixel_count).abs().sum()
+    assert not out.weight_sum.requires_grad and not out.pixel_count.requires_grad
+    for name, want in ref_grads.items():
+        assert grads[name] is not None and want.abs().sum() > 0, name
+        assert_close_rel(grads[name], want, dtype, f"grad {name}")
+
+
 def _rotation_from_quat(q: Tensor) -> Tensor:
     """R = (w^2 - |v|^2) I + 2 v v^T + 2 w [v]_x, written independently of the library's version."""
     q = q / q.norm(dim=-1, keepdim=True)
@@ -337,7 +376,7 @@ def test_sh_degree_zero_round_trip() -> None:
 def test_backend_registry(monkeypatch: pytest.MonkeyPatch) -> None:
     # the compiled backend is the CPU default (tests/test_cpu_backend.py checks it against this reference)
     assert select_backend("auto", torch.device("cpu")) == "cpu"
-    assert select_backend("auto", torch.device("cuda")) == "torch"
+    assert select_backend("auto", torch.device("cuda")) == ("gsplat" if "gsplat" in BACKENDS else "torch")
     assert BACKENDS["torch"].fn is rasterize_reference
     scene = _tiny_scene()
     with pytest.raises(ValueError, match="torch"):

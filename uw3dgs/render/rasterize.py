@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+from uw3dgs.render import gsplat_backend
 from uw3dgs.render.cpu_backend import rasterize_cpu
 from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
@@ -53,6 +54,8 @@ def select_backend(name: str, device: torch.device) -> str:
     if name == "auto":
         if not usable:
             raise ValueError(f"no rasterizer backend runs on {device.type}; registered: {sorted(BACKENDS)}")
+        if device.type == "cuda" and usable[0] == "torch" and "gsplat" not in BACKENDS:
+            gsplat_backend.warn_gsplat_missing()  # once: how to install the fast CUDA backend
         return usable[0]
     if name not in BACKENDS:
         raise ValueError(f"unknown rasterizer backend {name!r}; available: {['auto', *sorted(BACKENDS)]}")
@@ -85,3 +88,7 @@ register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), p
 # Compiled C++/OpenMP backend, the default on CPU: built on first use (falls back to the reference with one
 # warning if the build fails).
 register_backend("cpu", rasterize_cpu, devices=("cpu",), priority=10)
+# gsplat CUDA rasterizer, the default on CUDA when the optional extra is installed (pip install uw3dgs[cuda]).
+# Only looked up here: gsplat is imported (and builds its kernels) on first use.
+if gsplat_backend.gsplat_installed():
+    register_backend("gsplat", gsplat_backend.rasterize_gsplat, devices=("cuda",), priority=20)
