@@ -78,7 +78,10 @@ def test_unknown_yaml_key_is_an_error(tmp_path):
 
 
 def test_missing_data_folder_is_a_clear_error(tmp_path, capsys):
+    # a long path with brackets: it must come out whole (not wrapped) and literally (not read as markup)
+    missing = tmp_path / ("a-long-folder-name-" * 6) / "[dive 3]" / "nope"
     with pytest.raises(SystemExit) as exc:
-        entrypoint(["3dgs", "--data", str(tmp_path / "nope"), "--output-dir", str(tmp_path)])
+        entrypoint(["3dgs", "--data", str(missing), "--output-dir", str(tmp_path)])
     assert exc.value.code == 2
-    assert "does not exist" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"{missing} does not exist" in out

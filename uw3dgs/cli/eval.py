@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -10,6 +9,8 @@ from pathlib import Path
 import tyro
 from rich.console import Console
 from rich.table import Table
+
+from uw3dgs.cli.errors import exit_with_error
 
 
 @dataclass(frozen=True)
@@ -63,10 +64,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
     try:
         print_results(run_eval(args))
     except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        if os.environ.get("UW3DGS_DEBUG"):
-            raise
-        Console().print(f"[bold red]error:[/bold red] {exc}")
-        sys.exit(2)
+        exit_with_error(exc)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Sequence
@@ -32,6 +31,7 @@ from rich.console import Console
 from rich.progress import Progress
 from rich.table import Table
 
+from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.data.sfm import FixedCamera, SfmError, list_images, quiet_colmap, run_sfm
 from uw3dgs.utils.images import image_size
 
@@ -244,10 +244,7 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
     try:
         info = process(args, console)
     except (ProcessDataError, SfmError, ValueError, FileNotFoundError) as exc:
-        if os.environ.get("UW3DGS_DEBUG"):
-            raise
-        console.print(f"[bold red]error:[/bold red] {exc}")
-        sys.exit(2)
+        exit_with_error(exc, console)
     console.print(summary_table(args, info))
     if info["warning"]:
         console.print(f"[bold yellow]warning:[/bold yellow] {info['warning']}")

@@ -6,8 +6,6 @@ the evaluation can score clean radiance, depth and the recovered medium against 
 
 from __future__ import annotations
 
-import os
-import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,6 +16,7 @@ import tyro
 from rich.console import Console
 from rich.table import Table
 
+from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, generate_scene, medium_parameters
 
 
@@ -65,10 +64,7 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
     try:
         generate_scene(args.scene, args.out)
     except ValueError as exc:  # impossible settings, e.g. cameras under the seabed
-        if os.environ.get("UW3DGS_DEBUG"):
-            raise
-        console.print(f"[bold red]error:[/bold red] {exc}")
-        sys.exit(2)
+        exit_with_error(exc, console)
     console.print(summary(args.scene, args.out, time.perf_counter() - start))
     console.print(f"Train on it with: uw-train uw3dgs --data {args.out}")
 

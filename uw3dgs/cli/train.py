@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 import sys
 from pathlib import Path
 
 import tyro
 from rich.console import Console
 
+from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.config import load_config
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.registry import METHODS
@@ -56,10 +56,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
                       f"test views, device {trainer.device}, run folder {trainer.run_dir}")
         run_dir = trainer.train()
     except USER_ERRORS as exc:
-        if os.environ.get("UW3DGS_DEBUG"):
-            raise
-        console.print(f"[bold red]error:[/bold red] {exc}\n(set UW3DGS_DEBUG=1 for the full traceback)")
-        sys.exit(2)
+        exit_with_error(exc, console, hint="(set UW3DGS_DEBUG=1 for the full traceback)")
     console.print(f"Done. Evaluate with: uw-eval {run_dir / 'config.yml'}   |   tensorboard --logdir {run_dir}")
 
 

@@ -1,0 +1,24 @@
+"""How every command reports a user error: one readable line, the full traceback only on request."""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import NoReturn
+
+from rich.console import Console
+from rich.markup import escape
+
+
+def exit_with_error(exc: BaseException, console: Console | None = None, hint: str = "") -> NoReturn:
+    """Print `error: <message>` and exit with status 2; with UW3DGS_DEBUG set, re-raise for the traceback.
+
+    The message is not wrapped (paths in it stay copyable) and brackets in it are not read as markup.
+    """
+    if os.environ.get("UW3DGS_DEBUG"):
+        raise exc
+    text = f"[bold red]error:[/bold red] {escape(str(exc))}"
+    if hint:
+        text += f"\n{escape(hint)}"
+    (console or Console()).print(text, soft_wrap=True)
+    sys.exit(2)
