@@ -66,7 +66,7 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
     except ValueError as exc:  # impossible settings, e.g. cameras under the seabed
         exit_with_error(exc, console)
     console.print(summary(args.scene, args.out, time.perf_counter() - start))
-    console.print(f"Train on it with: uw-train uw3dgs --data {args.out}")
+    console.print(f"Train on it with: uw-train uw3dgs --data {args.out}", soft_wrap=True)
 
 
 if __name__ == "__main__":

@@ -53,11 +53,13 @@ def entrypoint(argv: list[str] | None = None) -> None:
         trainer.setup()
         console.print(f"[bold]uw-train[/bold] {config.method_name}: {trainer.datamanager.scene_name}, "
                       f"{len(trainer.datamanager.train_indices)} train / {len(trainer.datamanager.test_indices)} "
-                      f"test views, device {trainer.device}, run folder {trainer.run_dir}")
+                      f"test views, device {trainer.device}, run folder {trainer.run_dir}", soft_wrap=True)
         run_dir = trainer.train()
     except USER_ERRORS as exc:
         exit_with_error(exc, console, hint="(set UW3DGS_DEBUG=1 for the full traceback)")
-    console.print(f"Done. Evaluate with: uw-eval {run_dir / 'config.yml'}   |   tensorboard --logdir {run_dir}")
+    # soft_wrap: paths stay on one line, so they can be copied
+    console.print(f"Done. Evaluate with: uw-eval {run_dir / 'config.yml'}   |   tensorboard --logdir {run_dir}",
+                  soft_wrap=True)
 
 
 if __name__ == "__main__":
