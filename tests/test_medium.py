@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 import torch.nn.functional as F
+from conftest import tiny_train_config
 
+from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
+from uw3dgs.metrics.image import psnr
+from uw3dgs.registry import METHODS
 
 
 def reference_formation(radiance, alpha, ranges, beta_d, beta_b, b_inf, scale):
@@ -117,15 +124,6 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     show, B_inf (1 - exp(-beta_B z)) at the median range, to 0.03 (8 grey levels) per channel; and the
     water-free render must be far closer to the clean ground truth than the underwater input is.
     """
-    import dataclasses
-
-    from conftest import tiny_train_config
-
-    from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
-    from uw3dgs.engine.trainer import Trainer
-    from uw3dgs.metrics.image import psnr
-    from uw3dgs.registry import METHODS
-
     scene = SyntheticSceneConfig(width=64, height=48, num_views=16)
     base = tiny_train_config(tmp_path, cache_dir, scene, steps=400)
     spec = METHODS["uw3dgs"].config

@@ -137,18 +137,22 @@ def gsplat_installed() -> bool:
         return False
 
 
+def _warn_once(key: str, message: str) -> None:
+    """Warn with `message` the first time `key` comes up in this process, never again."""
+    with _lock:
+        if _state.get(key):
+            return
+        _state[key] = True
+    warnings.warn(message, RuntimeWarning, stacklevel=4)
+
+
 def warn_gsplat_missing() -> None:
     """One warning per process: CUDA tensors are rendered by the slow reference because gsplat is missing."""
-    with _lock:
-        if _state.get("missing_warned"):
-            return
-        _state["missing_warned"] = True
-    warnings.warn(
+    _warn_once(
+        "missing_warned",
         "uw3dgs: CUDA tensors are rendered with the pure-PyTorch reference rasterizer ('torch'), because the fast "
         f"CUDA backend 'gsplat' needs gsplat=={GSPLAT_VERSION}, which is not installed. Install it with "
         f"`{INSTALL_HINT}` (gsplat compiles its CUDA kernels on first use; that needs the CUDA toolkit, nvcc).",
-        RuntimeWarning,
-        stacklevel=3,
     )
 
 
@@ -208,18 +212,13 @@ def fused_path_applies(settings: RasterSettings, dtype: torch.dtype, channels: i
 
 def _warn_exact_path(settings: RasterSettings, dtype: torch.dtype) -> None:
     """One warning per process: CUDA renders take the slower exact path because the settings are not gsplat's."""
-    with _lock:
-        if _state.get("exact_warned"):
-            return
-        _state["exact_warned"] = True
-    warnings.warn(
+    _warn_once(
+        "exact_warned",
         f"uw3dgs: gsplat's fused CUDA kernels have alpha_max={GSPLAT_ALPHA_MAX}, alpha_min=1/255, "
         f"transmittance_min={GSPLAT_TRANSMITTANCE_MIN} and float32 compiled in; these renders use alpha_max="
         f"{settings.alpha_max}, alpha_min={settings.alpha_min}, transmittance_min={settings.transmittance_min}, "
         f"{dtype}, so they take the exact path (the reference's numbers, slower and more memory). For gsplat's speed "
         f"pass --model.raster.alpha-max {GSPLAT_ALPHA_MAX} (the default 0.99 is 3DGS's).",
-        RuntimeWarning,
-        stacklevel=3,
     )
 
 
