@@ -56,6 +56,11 @@ class MediumGridConfig(InstantiateConfig):
     and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper)."""
     estimate_iterations: int = 2000
     """Adam iterations per channel of the 'estimate' fit, after its coarse grid search."""
+    open_water_cells: int = 16
+    """'estimate' reads B_inf off open water: image cells (this many across the width) that no initial point
+    lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf with the betas from the points alone."""
+    open_water_min_share: float = 0.01
+    """Least share of the training pixels in such cells for them to count as open water (else B_inf is fitted)."""
 
 
 class VMField(nn.Module):

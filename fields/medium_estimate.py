@@ -9,6 +9,11 @@ attenuation is read off how a point's colour changes with range, the backscatter
 brighten with range. It needs the camera-to-point range to vary across views, which it does for the
 forward-looking or surveying captures underwater datasets are made of.
 
+Points alone pin beta_D well but leave (B_inf, beta_B) on a flat valley: only the backscatter curve
+B_inf (1 - exp(-beta_B z)) over the observed ranges is seen. Where the views show open water, its colour
+is B_inf itself (`open_water_color`), and with B_inf fixed the betas are well determined by the points,
+best by dark ones, whose colour is almost pure backscatter.
+
 Why it exists: jointly learning the medium and the Gaussians from the constant beta_prior lets the
 Gaussians' colours (initialised from underwater points) absorb the water first, and the photometric loss
 is then almost flat along the valley of (colour, medium) pairs that explain the images equally well; the
@@ -38,9 +43,21 @@ class MediumEstimate:
     b_inf: Tensor
     """[3]"""
     clean_colors: Tensor
-    """[P, 3] J_p of every input point (points without enough observations keep their input colour)."""
+    """[P, 3] J_p of every input point, de-hazed with the fitted medium (see `estimate_medium`)."""
     fitted_points: int
     """Points with at least `min_views` observations (the only ones that constrain the medium)."""
+
+
+def _project(points: Tensor, cam: Camera) -> tuple[Tensor, Tensor, Tensor]:
+    """Indices of the `points` [P, 3] that land in `cam`'s image in front of it, and their pixel rows, columns."""
+    viewmat, K = cam.viewmat.to(points.dtype), cam.K.to(points.dtype)
+    p_cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = p_cam[:, 2]
+    uv = (p_cam[:, :2] / z.clamp_min(1e-6)[:, None]) @ K[:2, :2].T + K[:2, 2]
+    col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    inside = (z > 1e-6) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+    ids = torch.nonzero(inside).squeeze(1)
+    return ids, row[ids], col[ids]
 
 
 def observe_points(points: Tensor, cameras: list[Camera], images: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
@@ -50,37 +67,75 @@ def observe_points(points: Tensor, cameras: list[Camera], images: list[Tensor]) 
     """
     index, colors, ranges = [], [], []
     for cam, image in zip(cameras, images, strict=True):
-        viewmat, K = cam.viewmat.to(points.dtype), cam.K.to(points.dtype)
-        p_cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-        z = p_cam[:, 2]
-        in_front = z > 1e-6
-        uv = (p_cam[:, :2] / z.clamp_min(1e-6)[:, None]) @ K[:2, :2].T + K[:2, 2]
-        col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-        inside = in_front & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
-        ids = torch.nonzero(inside).squeeze(1)
+        ids, row, col = _project(points, cam)
         index.append(ids)
-        colors.append(image[row[ids], col[ids]].to(points.dtype))
+        colors.append(image[row, col].to(points.dtype))
         ranges.append((points[ids] - cam.center.to(points.dtype)).norm(dim=-1))
     return torch.cat(index), torch.cat(colors), torch.cat(ranges)
 
 
+def open_water_color(points: Tensor, cameras: list[Camera], images: list[Tensor], cells: int,
+                     min_share: float) -> Tensor | None:
+    """B_inf read off open water: the per-channel median colour of the image regions no initial point lands in.
+
+    Each view is cut into square cells, `cells` across its width. A cell that none of the `points` [P, 3]
+    projects into holds nothing SfM could match in any view: open water, whose colour is the veiling light
+    B_inf alone (the median shrugs off the odd textureless patch of seabed). It is the only direct view of
+    B_inf: from surface points alone B_inf and beta_B trade off along a flat valley (README). None when the
+    empty cells hold less than `min_share` of all pixels (no open water in view).
+    """
+    water, total = [], 0
+    for cam, image in zip(cameras, images, strict=True):
+        _, row, col = _project(points, cam)
+        size = max(1, cam.width // cells)
+        grid_w = -(-cam.width // size)
+        hit = torch.zeros(-(-cam.height // size) * grid_w, dtype=torch.bool)
+        hit[(row // size) * grid_w + col // size] = True
+        empty = (~hit).view(-1, grid_w).repeat_interleave(size, 0).repeat_interleave(size, 1)
+        water.append(image[empty[:cam.height, :cam.width]])
+        total += cam.width * cam.height
+    pixels = torch.cat(water)
+    if len(pixels) < min_share * total:
+        return None
+    return pixels.float().median(dim=0).values
+
+
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
-                    dataset_scale: float, min_views: int = 3, iterations: int = 2000) -> MediumEstimate:
+                    dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3,
+                    iterations: int = 2000) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
-    Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Points seen
-    by fewer than `min_views` views cannot separate their colour from the water and keep their input colour.
+    Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
+    seen by `min_views` or more views constrain the medium; every point's colour is then de-hazed with it:
+    from its own observations (least squares), or, for a point no training view sees (SfM also matches test
+    views), its input colour as seen from the nearest training camera. A colour left underwater would carry
+    the water twice once the model adds it. `b_inf` [3], when given (read off open water by
+    `open_water_color`), is kept and only the betas are fitted.
     """
-    idx, obs, ranges = observe_points(points.float(), cameras, images)
+    points = points.float()
+    idx, obs, ranges = observe_points(points, cameras, images)
     keep = torch.bincount(idx, minlength=len(points))[idx] >= min_views
     if not bool(keep.any()):
         raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
-    beta_d, beta_b, b_inf, clean = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, iterations)
-    colors = point_colors.detach().float().clone()
-    colors[fitted] = clean
+    beta_d, beta_b, b_inf, _ = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, iterations)
+    medium = (beta_d, beta_b, b_inf)
+    centers = torch.stack([cam.center.to(points) for cam in cameras])
+    nearest = torch.cdist(points, centers).min(dim=1).values * dataset_scale
+    colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), nearest, *medium)
+    observed, local = torch.unique(idx, return_inverse=True)
+    colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
     return MediumEstimate(beta_d, beta_b, b_inf, colors, len(fitted))
+
+
+def clean_colors(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor,
+                 b_inf: Tensor) -> Tensor:
+    """Least-squares clean colours [P, 3] in [0, 1] of points seen as color [M, 3] at ranges z [M] through a
+    homogeneous medium; point [M] in 0..P-1 (every value present)."""
+    num_points = int(point.max()) + 1
+    return torch.stack([_profiled_residual(point, color[:, c], z.float(), beta_d[c], beta_b[c], b_inf[c],
+                                           num_points)[1] for c in range(3)], dim=-1)
 
 
 def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor, b_inf: Tensor,
@@ -99,16 +154,18 @@ def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, 
     return clean[..., point] * direct + back - color, clean
 
 
-def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps: int) -> tuple[float, float, float]:
+def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps: int,
+                b_inf: float | None) -> tuple[float, float, float]:
     """The best (beta_D, beta_B, B_inf) of one channel on a coarse grid: a global start for the refinement.
 
     The L1 landscape has long flat valleys (B_inf against beta_B where backscatter is faint), so a local
     method started at an arbitrary prior can stall in the wrong one. Betas span optical depths 0.02 to 5
-    at the median range, whatever the dataset's units.
+    at the median range, whatever the dataset's units. A given `b_inf` is not searched.
     """
     scale = float(z.median())
     betas = torch.logspace(math.log10(0.02), math.log10(5.0), steps) / scale
-    bd, bb, b = torch.meshgrid(betas, betas, torch.linspace(0.02, 0.98, steps), indexing="ij")
+    veils = torch.linspace(0.02, 0.98, steps) if b_inf is None else torch.tensor([b_inf])
+    bd, bb, b = torch.meshgrid(betas, betas, veils, indexing="ij")
     bd, bb, b = bd.reshape(-1), bb.reshape(-1), b.reshape(-1)
     losses = torch.cat([_profiled_residual(point, color, z, bd[i:i + 256], bb[i:i + 256], b[i:i + 256],
                                            num_points)[0].abs().mean(-1) for i in range(0, len(bd), 256)])
@@ -116,18 +173,18 @@ def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps:
     return float(bd[best]), float(bb[best]), float(b[best])
 
 
-def fit_medium(point: Tensor, color: Tensor, z: Tensor, iterations: int = 2000, lr: float = 0.02,
-               grid_steps: int = 16, grid_observations: int = 4096,
+def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, iterations: int = 2000,
+               lr: float = 0.02, grid_steps: int = 16, grid_observations: int = 4096,
                fit_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """L1 fit of color[m] = J[point[m]] exp(-beta_D z[m]) + B_inf (1 - exp(-beta_B z[m])), per channel.
 
-    point [M] in 0..P-1 (every value present), color [M, 3], z [M] > 0. Returns beta_D, beta_B, B_inf [3]
-    and J [P, 3] in [0, 1]. Each channel is independent: a coarse grid search on a random
-    `grid_observations` of the observations, Adam on `fit_observations` of them (so big SfM models cost
-    no more than small ones), with the J_p profiled out, then J for every point from all its observations.
-    L1 tolerates occluded or outlying observations.
+    point [M] in 0..P-1 (every value present), color [M, 3], z [M] > 0; `b_inf` [3] fixes the veiling light
+    (read off open water) instead of fitting it. Returns beta_D, beta_B, B_inf [3] and J [P, 3] in [0, 1].
+    Each channel is independent: a coarse grid search on a random `grid_observations` of the observations,
+    Adam on `fit_observations` of them (so big SfM models cost no more than small ones), with the J_p
+    profiled out, then J for every point from all its observations. L1 tolerates occluded or outlying
+    observations.
     """
-    num_points = int(point.max()) + 1
     z = z.float()
     order = torch.randperm(len(point), generator=torch.Generator().manual_seed(0))
 
@@ -140,21 +197,27 @@ def fit_medium(point: Tensor, color: Tensor, z: Tensor, iterations: int = 2000, 
     fit, fit_local, fit_points = sample(fit_observations)
     results = []
     for c in range(3):
-        start = _grid_start(grid_local, color[grid, c].float(), z[grid], grid_points, grid_steps)
-        params = torch.tensor([math.log(start[0]), math.log(start[1]), math.log(start[2] / (1 - start[2]))],
-                              requires_grad=True)  # log beta_D, log beta_B, logit B_inf
+        fixed = None if b_inf is None else float(b_inf[c])
+        start = _grid_start(grid_local, color[grid, c].float(), z[grid], grid_points, grid_steps, fixed)
+        logs = [math.log(start[0]), math.log(start[1])]  # log beta_D, log beta_B and, unless fixed, logit B_inf
+        if fixed is None:
+            logs.append(math.log(start[2] / (1 - start[2])))
+        params = torch.tensor(logs, requires_grad=True)
+
+        def medium(params: Tensor = params, fixed: float | None = fixed) -> tuple[Tensor, Tensor, Tensor]:
+            veil = torch.sigmoid(params[2]) if fixed is None else torch.tensor(fixed)
+            return params[0].exp(), params[1].exp(), veil
+
         optimizer = torch.optim.Adam([params], lr=lr)
         # decay to lr / 100: Adam at a constant rate hovers around an L1 minimum instead of settling in it
         schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=0.01 ** (1 / max(iterations, 1)))
         for _ in range(iterations):
             optimizer.zero_grad()
-            _profiled_residual(fit_local, color[fit, c].float(), z[fit], params[0].exp(), params[1].exp(),
-                               torch.sigmoid(params[2]), fit_points)[0].abs().mean().backward()
+            _profiled_residual(fit_local, color[fit, c].float(), z[fit], *medium(),
+                               fit_points)[0].abs().mean().backward()
             optimizer.step()
             schedule.step()
         with torch.no_grad():
-            medium = (params[0].exp(), params[1].exp(), torch.sigmoid(params[2]))
-            clean = _profiled_residual(point, color[:, c].float(), z, *medium, num_points)[1]
-        results.append((*medium, clean))
-    beta_d, beta_b, b_inf, clean = (torch.stack(x, dim=-1) for x in zip(*results, strict=True))
-    return beta_d, beta_b, b_inf, clean
+            results.append(medium())
+    beta_d, beta_b, b_inf = (torch.stack(x, dim=-1) for x in zip(*results, strict=True))
+    return beta_d, beta_b, b_inf, clean_colors(point, color.float(), z, beta_d, beta_b, b_inf)

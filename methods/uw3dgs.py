@@ -9,6 +9,7 @@ what L_beta and L_z reduce to without the PAUP branch.
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,7 +24,7 @@ from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_image
-from uw3dgs.fields.medium_estimate import estimate_medium
+from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.registry import MethodSpec
@@ -67,9 +68,14 @@ class UW3DGSModel(GaussianSplattingModel):
             return
         (scene, train_indices), self._estimate_inputs = self._estimate_inputs, None
         mc = self.config.medium
-        estimate = estimate_medium(scene.points, scene.point_colors, [scene.cameras[i] for i in train_indices],
-                                   [scene.images[i] for i in train_indices], self.dataset_scale,
-                                   iterations=mc.estimate_iterations)
+        cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
+        water = None if mc.open_water_cells <= 0 else \
+            open_water_color(scene.points.float(), cameras, images, mc.open_water_cells, mc.open_water_min_share)
+        source = "fitted (no open water in view)" if water is None else \
+            f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
+        print(f"uw3dgs: medium estimate: B_inf {source}", file=sys.stderr)
+        estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
+                                   b_inf=water, iterations=mc.estimate_iterations)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)

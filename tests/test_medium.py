@@ -117,12 +117,12 @@ def test_no_lbeta_ablation_freezes_beta():
 def test_training_recovers_the_medium(tmp_path, cache_dir):
     """A short uw3dgs run on a small synthetic scene with a known homogeneous medium.
 
-    Tolerances, from what this scene can tell apart (README, "UW-3DGS on the built-in synthetic scene"):
-    beta_D to 25% per channel (16 views of 64x48 px; the full-size scene gets 8/2/11%); beta_B and
-    B_inf are not separately identifiable over the 3-5.6 m of ranges the cameras see (the fit trades
-    one against the other along a valley), so what is checked is the backscatter the images actually
-    show, B_inf (1 - exp(-beta_B z)) at the median range, to 0.03 (8 grey levels) per channel; and the
-    water-free render must be far closer to the clean ground truth than the underwater input is.
+    The scene's views show open water (B_inf on its own) and near-black patches (backscatter alone), which
+    is what makes the medium identifiable (README, "UW-3DGS on the built-in synthetic scene": the full-size
+    scene gets every parameter within 9%). Tolerances, for 12 training views of 64x48 px and 400 steps,
+    from seeds 0-2 of this scene: B_inf within 6% (bound 10%), beta_D within 13% (bound 20%), beta_B
+    within 24% (bound 30%; seed 0's green is the worst); and the water-free render must be far closer to
+    the clean ground truth than the underwater input is (19.7-21.4 dB against 11.8-12.2 dB).
     """
     scene = SyntheticSceneConfig(width=64, height=48, num_views=16)
     base = tiny_train_config(tmp_path, cache_dir, scene, steps=400)
@@ -140,12 +140,8 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     truth = trainer.datamanager.scene.gt.medium
     learned = trainer.model.medium_summary()
     true_d, true_b, true_inf = (torch.tensor(truth[k]) for k in ("beta_D", "beta_B", "B_inf"))
-    assert ((learned["beta_d"] - true_d).abs() / true_d).max() < 0.25, learned["beta_d"]
-    ranges = trainer.datamanager.scene.gt.ranges
-    z = ranges[torch.isfinite(ranges)].median()
-    backscatter = learned["b_inf"] * (1 - torch.exp(-learned["beta_b"] * z))
-    true_backscatter = true_inf * (1 - torch.exp(-true_b * z))
-    torch.testing.assert_close(backscatter, true_backscatter, atol=0.03, rtol=0)
+    for name, truth_, bound in (("b_inf", true_inf, 0.10), ("beta_d", true_d, 0.20), ("beta_b", true_b, 0.30)):
+        assert ((learned[name] - truth_).abs() / truth_).max() < bound, (name, learned[name], truth_)
 
     uri, underwater = [], []
     with torch.no_grad():

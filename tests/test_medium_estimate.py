@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.fields.medium_estimate import estimate_medium, fit_medium, observe_points
+from uw3dgs.fields.medium_estimate import estimate_medium, fit_medium, observe_points, open_water_color
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -70,6 +71,69 @@ def test_fit_recovers_a_known_medium_from_exact_observations():
     assert math.isfinite(float(beta_d.sum()))
 
 
+def test_fit_with_the_veiling_light_known_recovers_the_betas_over_a_short_range_of_distances():
+    """Over 3-6 units the backscatter curve alone cannot tell B_inf from beta_B; with B_inf given it can."""
+    g = torch.Generator().manual_seed(1)
+    num_points, views = 300, 6
+    clean = 0.9 * torch.rand(num_points, 3, generator=g) ** 2  # some nearly black points, as real seabeds have
+    point = torch.arange(num_points).repeat_interleave(views)
+    z = 3 + 3 * torch.rand(len(point), generator=g)
+    color = clean[point] * torch.exp(-TRUE_D * z[:, None]) + TRUE_BINF * (1 - torch.exp(-TRUE_B * z[:, None]))
+    color = (color * 255).round() / 255  # 8-bit images
+    beta_d, beta_b, b_inf, _ = fit_medium(point, color, z, b_inf=TRUE_BINF, iterations=500)
+    assert torch.equal(b_inf, TRUE_BINF)
+    torch.testing.assert_close(beta_d, TRUE_D, rtol=0.03, atol=0)
+    torch.testing.assert_close(beta_b, TRUE_B, rtol=0.05, atol=0)
+
+
+def test_every_point_is_dehazed_even_those_too_few_views_see():
+    """A 5x5 grid of seabed points seen from 3-6 units fixes the medium; a point only the highest camera sees
+    gets J from its one observation, a point no camera sees is taken as seen from the nearest one. None keeps
+    its underwater colour (the model would add the water twice)."""
+    cams = [look_at_camera([0.0, 0.0, 3.0 + k]) for k in range(4)]
+    grid = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 5), torch.linspace(-1, 1, 5), indexing="ij"), -1)
+    points = torch.cat([torch.cat([grid.reshape(-1, 2), torch.zeros(25, 1)], 1),
+                        torch.tensor([[3.5, 0.0, 0.0], [0.0, 0.0, 10.0]])])  # seen by the top camera; by none
+    clean = 0.9 * torch.rand(len(points), 3, generator=torch.Generator().manual_seed(2)) ** 2
+
+    def underwater(j: Tensor, z: Tensor) -> Tensor:
+        return j * torch.exp(-TRUE_D * z[..., None]) + TRUE_BINF * (1 - torch.exp(-TRUE_B * z[..., None]))
+
+    images = []
+    for cam in cams:  # the points land in distinct pixels; the rest of the image is black
+        idx, _, ranges = observe_points(points, [cam], [torch.zeros(30, 40, 3)])
+        p_cam = points[idx] @ cam.viewmat[:3, :3].T + cam.viewmat[:3, 3]
+        uv = (p_cam[:, :2] / p_cam[:, 2:]) @ cam.K[:2, :2].T + cam.K[:2, 2]
+        image = torch.zeros(30, 40, 3)
+        image[uv[:, 1].floor().long(), uv[:, 0].floor().long()] = underwater(clean[idx], ranges)
+        images.append(image)
+    seen_by = torch.bincount(observe_points(points, cams, images)[0], minlength=len(points))
+    assert seen_by[:25].min() == 4 and seen_by[25] == 1 and seen_by[26] == 0
+    colors = torch.rand(len(points), 3)
+    colors[26] = underwater(clean[26], torch.tensor(4.0))  # the nearest camera is 4 units from it
+    estimate = estimate_medium(points, colors, cams, images, dataset_scale=1.0, b_inf=TRUE_BINF, iterations=300)
+    assert estimate.fitted_points == 25
+    torch.testing.assert_close(estimate.beta_d, TRUE_D, rtol=0.02, atol=0)
+    torch.testing.assert_close(estimate.clean_colors, clean, atol=0.01, rtol=0)
+
+
+def test_open_water_color_is_the_median_of_the_cells_no_point_lands_in():
+    """Top half of the view: open water (one colour, a little noise); bottom half: textured seabed with points."""
+    cam = look_at_camera([0.0, 0.0, 5.0], width=64, height=48)
+    g = torch.Generator().manual_seed(0)
+    water = torch.tensor([0.05, 0.25, 0.35])
+    image = torch.rand(48, 64, 3, generator=g)
+    image[:24] = water + 0.01 * torch.randn(24, 64, 3, generator=g)
+    # points on the plane z = 0 that land in the bottom half, one per 4x4 pixels
+    v, u = torch.meshgrid(torch.arange(24, 48, 4) + 0.5, torch.arange(0, 64, 4) + 0.5, indexing="ij")
+    points = torch.stack([(u - 32) / 30 * 5, -(v - 24) / 30 * 5, torch.zeros_like(u)], dim=-1).reshape(-1, 3)
+    found = open_water_color(points, [cam], [image], cells=8, min_share=0.01)
+    torch.testing.assert_close(found, water, atol=0.003, rtol=0)
+    assert open_water_color(points, [cam], [image], cells=8, min_share=0.6) is None  # half the view < 60%
+    everywhere = torch.cat([points, points * torch.tensor([1.0, -1.0, 1.0])])  # mirrored into the top half
+    assert open_water_color(everywhere, [cam], [image], cells=8, min_share=0.01) is None
+
+
 def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     """`--model.medium.init estimate`: the model starts from the fit, the same everywhere, colours de-hazed."""
     import dataclasses
@@ -92,8 +156,11 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     start.before_step(2)  # a resumed run: the checkpoint has the medium
     torch.testing.assert_close(model.medium.beta_d.bias.detach(), softplus_inverse(prior))
     start.before_step(1)  # a fresh run
-    expected = estimate_medium(scene.points, scene.point_colors, [scene.cameras[i] for i in train],
-                               [scene.images[i] for i in train], scene.dataset_scale, iterations=200)
+    cameras, images = [scene.cameras[i] for i in train], [scene.images[i] for i in train]
+    water = open_water_color(scene.points, cameras, images, medium.open_water_cells, medium.open_water_min_share)
+    assert water is not None  # the built-in scene's views show open water at the top
+    expected = estimate_medium(scene.points, scene.point_colors, cameras, images, scene.dataset_scale,
+                               b_inf=water, iterations=200)
     beta_d, beta_b = model.medium.betas(torch.rand(500, 3) * (model.medium.box_max - model.medium.box_min)
                                         + model.medium.box_min)
     torch.testing.assert_close(beta_d, expected.beta_d.expand(500, 3), rtol=1e-4, atol=1e-6)
@@ -104,6 +171,8 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     torch.testing.assert_close(model.medium.b_inf.detach(), expected.b_inf)
     torch.testing.assert_close(model.gaussians.sh0[:, 0], rgb_to_sh(expected.clean_colors.clamp(0, 1)))
     assert expected.fitted_points > 0.5 * len(scene.points)
-    # the fit explains the water: every channel's attenuation is closer to the truth than the prior is
+    # the fit explains the water: every channel's attenuation is closer to the truth than the prior is,
+    # and the veiling light is the open water's colour
     truth = torch.tensor(scene.gt.medium["beta_D"])
     assert ((expected.beta_d - truth).abs() < (prior - truth).abs()).all()
+    torch.testing.assert_close(expected.b_inf, torch.tensor(scene.gt.medium["B_inf"]), atol=2 / 255, rtol=0)

@@ -154,6 +154,23 @@ def test_underwater_image_follows_the_formation_model(scene_dir):
     assert scene.images.std() > 0.02 and scene.gt.clean_images.std() > 0.05  # textured, not flat
 
 
+def test_dark_patches_show_the_backscatter_alone(scene_dir):
+    """Near-black seabed patches: there the underwater image is (almost) the backscatter B_inf (1 - exp(-beta_B t))."""
+    scene = read_seathru_layout(scene_dir)
+    medium = scene.gt.medium
+    t = scene.gt.ranges.double().numpy()[..., None]
+    dark = np.isfinite(t[..., 0]) & (scene.gt.clean_images.double().numpy() <= 0.04).all(-1)
+    assert dark.mean() > 0.01
+    backscatter = np.array(medium["B_inf"]) * (1 - np.exp(-np.array(medium["beta_B"]) * t))
+    assert np.abs(scene.images.double().numpy() - backscatter)[dark].max() < 0.04 + 0.5 / 255
+
+
+def test_a_scene_without_outliers(tmp_path):
+    config = dataclasses.replace(SMALL, num_views=4, outlier_fraction=0.0, num_points=200)
+    scene = read_seathru_layout(generate_scene(config, tmp_path / "scene", progress=False))
+    assert len(scene.points) == 200
+
+
 def test_points_lie_on_the_seen_seabed(scene_dir):
     """Most points (all but the outliers) sit within a few noise sigmas of the surface of view 0."""
     scene = read_seathru_layout(scene_dir)

@@ -21,7 +21,7 @@ import pycolmap
 from PIL import Image
 from rich.progress import Progress
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 """Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""
 
 RGB = tuple[float, float, float]
@@ -45,8 +45,9 @@ class SyntheticSceneConfig:
     """Camera path: a gently swaying forward pass (like SeaThru-NeRF captures) or a lawnmower survey."""
     altitude: float = 3.0
     """Camera height above the mean seabed, in metres."""
-    tilt_deg: float = 35.0
-    """Angle of the optical axis from straight down (0 = nadir); above ~50 the image top sees open water."""
+    tilt_deg: float = 55.0
+    """Angle of the optical axis from straight down (0 = nadir); above ~50 the image top sees open water
+    (as in forward-looking dives), which is where the veiling light B_inf shows on its own."""
     path_length: float = 6.0
     """Length of the forward pass, or of each lawnmower line, in metres."""
     lawnmower_lines: int = 3
@@ -71,6 +72,13 @@ class SyntheticSceneConfig:
     """Wavelength of sand ripples, in metres."""
     num_specks: int = 400
     """Small colourful objects (shells, starfish, sponges) scattered over the viewed area."""
+    num_dark_patches: int = 60
+    """Near-black patches (sea-urchin clusters, dark sponges, crevices) over the viewed area: where the clean
+    radiance is ~0 an underwater pixel shows the backscatter alone, which is what makes beta_B readable."""
+    dark_patch_radius: tuple[float, float] = (0.1, 0.3)
+    """Range of the dark patches' radii, in metres."""
+    dark_patch_albedo: float = 0.03
+    """Albedo of the dark patches (all channels)."""
     sun_elevation_deg: float = 60.0
     """Elevation of the directional light above the horizon, in degrees."""
     sun_azimuth_deg: float = 30.0
@@ -307,6 +315,21 @@ def _specks(
         albedo[rows, cols] = _lerp(albedo[rows, cols], colour, cover)
 
 
+def _dark_patches(cfg: SyntheticSceneConfig, coords: np.ndarray, noise: _Noise, albedo: np.ndarray,
+                  focus: np.ndarray, rng: np.random.Generator) -> None:
+    """Paint near-black patches with ragged outlines into `albedo` (on sand, algae and rocks alike)."""
+    res = coords[1] - coords[0]
+    ragged = 1.0 + 0.3 * np.clip(noise.fbm(0.15, 2), -2.0, 2.0)
+    dark = np.full(3, cfg.dark_patch_albedo, dtype=np.float32)
+    for _ in range(cfg.num_dark_patches):
+        cx, cy = rng.uniform(focus[0] - 2.0, focus[1] + 2.0), rng.uniform(focus[2] - 2.0, focus[3] + 2.0)
+        radius = rng.uniform(*cfg.dark_patch_radius)
+        rows, cols = _window(coords, cx, cy, 1.6 * radius + res)
+        dist = np.hypot(coords[cols][None, :] - cx, coords[rows][:, None] - cy) * ragged[rows, cols]
+        cover = np.clip((radius - dist) / res + 0.5, 0.0, 1.0)[..., None]
+        albedo[rows, cols] = _lerp(albedo[rows, cols], dark, cover)
+
+
 def _albedo(
     cfg: SyntheticSceneConfig,
     coords: np.ndarray,
@@ -330,7 +353,9 @@ def _albedo(
                           _lerp(_ENCRUSTING[1], _ENCRUSTING[2], 2 * hue - 1))
     crust = _smoothstep(0.4, 1.2, noise.fbm(0.3, 3))[..., None]
     rock_albedo = _lerp(rock_colours * (1.0 + 0.15 * noise.fbm(0.1, 2))[..., None], encrusting, crust)
-    return np.clip(_lerp(albedo, rock_albedo, rock[..., None]), 0.0, 1.0)
+    albedo = _lerp(albedo, rock_albedo, rock[..., None])
+    _dark_patches(cfg, coords, noise, albedo, focus, rng)
+    return np.clip(albedo, 0.0, 1.0)
 
 
 def _shading(cfg: SyntheticSceneConfig, heights: np.ndarray) -> np.ndarray:
@@ -545,7 +570,8 @@ def sample_points(
     # Outliers: random depths along random rays of random views, coloured by the pixel they fall in.
     ko = rng.integers(len(views), size=n_out)
     u, v = rng.uniform(0.0, cfg.width, n_out), rng.uniform(0.0, cfg.height, n_out)
-    out_dirs = np.stack([ray_directions(K, views[a].c2w, b, c) for a, b, c in zip(ko, u, v, strict=True)])
+    out_dirs = np.array([ray_directions(K, views[a].c2w, b, c) for a, b, c in zip(ko, u, v, strict=True)])
+    out_dirs = out_dirs.reshape(n_out, 3)
     io, jo = v.astype(int), u.astype(int)
     outliers = centres[ko] + out_dirs * rng.uniform(near, far, (n_out, 1))
     xyz = np.concatenate([surface, outliers])
