@@ -119,14 +119,13 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
         raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
-    beta_d, beta_b, b_inf, _ = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, iterations)
-    medium = (beta_d, beta_b, b_inf)
+    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, iterations)
     centers = torch.stack([cam.center.to(points) for cam in cameras])
     nearest = torch.cdist(points, centers).min(dim=1).values * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), nearest, *medium)
     observed, local = torch.unique(idx, return_inverse=True)
     colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
-    return MediumEstimate(beta_d, beta_b, b_inf, colors, len(fitted))
+    return MediumEstimate(*medium, colors, len(fitted))
 
 
 def clean_colors(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor,
@@ -175,15 +174,14 @@ def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps:
 
 def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, iterations: int = 2000,
                lr: float = 0.02, grid_steps: int = 16, grid_observations: int = 4096,
-               fit_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+               fit_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor]:
     """L1 fit of color[m] = J[point[m]] exp(-beta_D z[m]) + B_inf (1 - exp(-beta_B z[m])), per channel.
 
     point [M] in 0..P-1 (every value present), color [M, 3], z [M] > 0; `b_inf` [3] fixes the veiling light
-    (read off open water) instead of fitting it. Returns beta_D, beta_B, B_inf [3] and J [P, 3] in [0, 1].
-    Each channel is independent: a coarse grid search on a random `grid_observations` of the observations,
-    Adam on `fit_observations` of them (so big SfM models cost no more than small ones), with the J_p
-    profiled out, then J for every point from all its observations. L1 tolerates occluded or outlying
-    observations.
+    (read off open water) instead of fitting it. Returns beta_D, beta_B, B_inf [3] (`clean_colors` gives the
+    J_p for them). Each channel is independent: a coarse grid search on a random `grid_observations` of the
+    observations, then Adam on `fit_observations` of them (so big SfM models cost no more than small ones),
+    with the J_p profiled out. L1 tolerates occluded or outlying observations.
     """
     z = z.float()
     order = torch.randperm(len(point), generator=torch.Generator().manual_seed(0))
@@ -220,4 +218,4 @@ def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = N
         with torch.no_grad():
             results.append(medium())
     beta_d, beta_b, b_inf = (torch.stack(x, dim=-1) for x in zip(*results, strict=True))
-    return beta_d, beta_b, b_inf, clean_colors(point, color.float(), z, beta_d, beta_b, b_inf)
+    return beta_d, beta_b, b_inf

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.fields.medium_estimate import estimate_medium, fit_medium, observe_points, open_water_color
+from uw3dgs.fields.medium_estimate import clean_colors, estimate_medium, fit_medium, observe_points, open_water_color
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -63,7 +63,8 @@ def test_fit_recovers_a_known_medium_from_exact_observations():
     point = torch.arange(num_points).repeat_interleave(views)
     z = 2 + 10 * torch.rand(len(point), generator=g)
     color = clean[point] * torch.exp(-TRUE_D * z[:, None]) + TRUE_BINF * (1 - torch.exp(-TRUE_B * z[:, None]))
-    beta_d, beta_b, b_inf, fitted = fit_medium(point, color, z)
+    beta_d, beta_b, b_inf = fit_medium(point, color, z)
+    fitted = clean_colors(point, color, z, beta_d, beta_b, b_inf)
     torch.testing.assert_close(beta_d, TRUE_D, rtol=0.02, atol=0)
     torch.testing.assert_close(b_inf, TRUE_BINF, rtol=0.02, atol=0)
     torch.testing.assert_close(beta_b, TRUE_B, rtol=0.05, atol=0)  # red: backscatter only 0.05 at most
@@ -80,7 +81,7 @@ def test_fit_with_the_veiling_light_known_recovers_the_betas_over_a_short_range_
     z = 3 + 3 * torch.rand(len(point), generator=g)
     color = clean[point] * torch.exp(-TRUE_D * z[:, None]) + TRUE_BINF * (1 - torch.exp(-TRUE_B * z[:, None]))
     color = (color * 255).round() / 255  # 8-bit images
-    beta_d, beta_b, b_inf, _ = fit_medium(point, color, z, b_inf=TRUE_BINF, iterations=500)
+    beta_d, beta_b, b_inf = fit_medium(point, color, z, b_inf=TRUE_BINF, iterations=500)
     assert torch.equal(b_inf, TRUE_BINF)
     torch.testing.assert_close(beta_d, TRUE_D, rtol=0.03, atol=0)
     torch.testing.assert_close(beta_b, TRUE_B, rtol=0.05, atol=0)
