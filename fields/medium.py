@@ -61,6 +61,11 @@ class MediumGridConfig(InstantiateConfig):
     lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf with the betas from the points alone."""
     open_water_min_share: float = 0.01
     """Least share of the training pixels in such cells for them to count as open water (else B_inf is fitted)."""
+    dehaze_unseen_with_all_poses: bool = True
+    """An initial point no training view sees got its colour from the other views of the SfM model (COLMAP
+    matches the test views too). True de-hazes it at its mean range to the cameras of all views whose image it
+    lands in (their poses, never their pixels), as its colour was seen; False at the range to the nearest
+    training camera, the strict protocol that uses no test-view pose."""
 
 
 class VMField(nn.Module):

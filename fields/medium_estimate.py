@@ -100,17 +100,31 @@ def open_water_color(points: Tensor, cameras: list[Camera], images: list[Tensor]
     return pixels.float().median(dim=0).values
 
 
+def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
+    """The range [P] each point's SfM colour was seen at: its mean distance to the `cameras` whose image it lands
+    in (where COLMAP could have matched it), or to the nearest camera where it lands in none (an outlier)."""
+    total, count = torch.zeros(len(points), dtype=points.dtype), torch.zeros(len(points), dtype=points.dtype)
+    for cam in cameras:
+        ids = _project(points, cam)[0]
+        total[ids] += (points[ids] - cam.center.to(points.dtype)).norm(dim=-1)
+        count[ids] += 1
+    centers = torch.stack([cam.center.to(points) for cam in cameras])
+    nearest = torch.cdist(points, centers).min(dim=1).values
+    return torch.where(count > 0, total / count.clamp_min(1), nearest)
+
+
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
                     dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3,
-                    iterations: int = 2000) -> MediumEstimate:
+                    iterations: int = 2000, sfm_cameras: list[Camera] | None = None) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
     seen by `min_views` or more views constrain the medium; every point's colour is then de-hazed with it:
     from its own observations (least squares), or, for a point no training view sees (SfM also matches test
-    views), its input colour as seen from the nearest training camera. A colour left underwater would carry
-    the water twice once the model adds it. `b_inf` [3], when given (read off open water by
-    `open_water_color`), is kept and only the betas are fitted.
+    views), its input colour at the range it was seen from (`color_ranges` over `sfm_cameras`, the cameras of
+    all the views SfM matched; the training `cameras` when None). A colour left underwater would carry the
+    water twice once the model adds it. `b_inf` [3], when given (read off open water by `open_water_color`),
+    is kept and only the betas are fitted.
     """
     points = points.float()
     idx, obs, ranges = observe_points(points, cameras, images)
@@ -120,9 +134,8 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
     medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, iterations)
-    centers = torch.stack([cam.center.to(points) for cam in cameras])
-    nearest = torch.cdist(points, centers).min(dim=1).values * dataset_scale
-    colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), nearest, *medium)
+    seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
+    colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed, local = torch.unique(idx, return_inverse=True)
     colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
     return MediumEstimate(*medium, colors, len(fitted))

@@ -10,7 +10,15 @@ import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.fields.medium_estimate import clean_colors, estimate_medium, fit_medium, observe_points, open_water_color
+from uw3dgs.fields.medium_estimate import (
+    _project,
+    clean_colors,
+    color_ranges,
+    estimate_medium,
+    fit_medium,
+    observe_points,
+    open_water_color,
+)
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -118,6 +126,32 @@ def test_every_point_is_dehazed_even_those_too_few_views_see():
     torch.testing.assert_close(estimate.clean_colors, clean, atol=0.01, rtol=0)
 
 
+def test_a_point_only_other_views_see_is_dehazed_at_the_range_they_see_it_from():
+    """SfM colours a point from every view it matched, test views included. A point no training camera sees,
+    but two other cameras do (4 and 6 units off), is de-hazed at their mean range, 5; without those poses at
+    the range to the nearest training camera, which leaves water in its colour."""
+    train = [look_at_camera([0.0, 0.0, 3.0 + k]) for k in range(4)]
+    others = [look_at_camera([20.0, 0.0, 4.0]), look_at_camera([20.0, 0.0, 6.0])]
+    grid = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 5), torch.linspace(-1, 1, 5), indexing="ij"), -1)
+    points = torch.cat([torch.cat([grid.reshape(-1, 2), torch.zeros(25, 1)], 1), torch.tensor([[20.0, 0, 0]])])
+    torch.testing.assert_close(color_ranges(points, train + others)[25], torch.tensor(5.0))
+    torch.testing.assert_close(color_ranges(points, train)[25], torch.tensor(20.0 ** 2 + 3.0 ** 2).sqrt())
+    clean = 0.9 * torch.rand(len(points), 3, generator=torch.Generator().manual_seed(2)) ** 2
+    underwater = clean * torch.exp(-TRUE_D * 5.0) + TRUE_BINF * (1 - torch.exp(-TRUE_B * 5.0))
+    images = []
+    for cam in train:  # the grid points as the training cameras see them, through the true medium
+        idx, row, col = _project(points, cam)
+        ranges = (points[idx] - cam.center).norm(dim=-1)[:, None]
+        image = torch.zeros(30, 40, 3)
+        image[row, col] = clean[idx] * torch.exp(-TRUE_D * ranges) + TRUE_BINF * (1 - torch.exp(-TRUE_B * ranges))
+        images.append(image)
+    kwargs = dict(dataset_scale=1.0, b_inf=TRUE_BINF, iterations=300)
+    with_poses = estimate_medium(points, underwater, train, images, sfm_cameras=train + others, **kwargs)
+    torch.testing.assert_close(with_poses.clean_colors[25], clean[25], atol=0.01, rtol=0)
+    train_only = estimate_medium(points, underwater, train, images, **kwargs)
+    assert (train_only.clean_colors[25] - clean[25]).abs().max() > 0.1
+
+
 def test_open_water_color_is_the_median_of_the_cells_no_point_lands_in():
     """Top half of the view: open water (one colour, a little noise); bottom half: textured seabed with points."""
     cam = look_at_camera([0.0, 0.0, 5.0], width=64, height=48)
@@ -161,7 +195,7 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     water = open_water_color(scene.points, cameras, images, medium.open_water_cells, medium.open_water_min_share)
     assert water is not None  # the built-in scene's views show open water at the top
     expected = estimate_medium(scene.points, scene.point_colors, cameras, images, scene.dataset_scale,
-                               b_inf=water, iterations=200)
+                               b_inf=water, iterations=200, sfm_cameras=scene.cameras)
     beta_d, beta_b = model.medium.betas(torch.rand(500, 3) * (model.medium.box_max - model.medium.box_min)
                                         + model.medium.box_min)
     torch.testing.assert_close(beta_d, expected.beta_d.expand(500, 3), rtol=1e-4, atol=1e-6)
