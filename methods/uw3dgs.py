@@ -170,6 +170,8 @@ class UW3DGSModel(GaussianSplattingModel):
             uri = outputs["uri"].detach().clamp(0, 1)
             metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
             metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
+            if "covisible" in batch:
+                metrics["uri_psnr_covisible"] = float(psnr(uri, batch["clean_image"], batch["covisible"]))
         if "range" in batch:
             truth = batch["range"]
             valid = torch.isfinite(truth) & (outputs["alpha"] > 0.5)

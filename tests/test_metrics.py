@@ -61,6 +61,21 @@ def test_psnr_of_a_constant_offset(offset, expected_db):
     assert psnr(gt + offset, gt).item() == pytest.approx(expected_db, abs=1e-4)
 
 
+def test_masked_psnr_counts_only_the_masked_pixels():
+    pred, gt = random_pair((2, 6, 8, 3), noise=0.05)
+    mask = torch.rand(2, 6, 8, generator=torch.Generator().manual_seed(3)) > 0.4
+    expected = [10 * np.log10(1.0 / np.mean((p - g)[m] ** 2))
+                for p, g, m in zip(pred.numpy(), gt.numpy(), mask.numpy(), strict=True)]
+    np.testing.assert_allclose(psnr(pred, gt, mask).numpy(), expected, rtol=1e-12)
+    assert psnr(pred[0], gt[0], torch.ones(6, 8, dtype=torch.bool)).item() == pytest.approx(psnr(pred[0], gt[0]).item())
+    pred[0][~mask[0]] = 1 - gt[0][~mask[0]]  # errors outside the mask change nothing
+    np.testing.assert_allclose(psnr(pred, gt, mask)[0].item(), expected[0], rtol=1e-12)
+    with pytest.raises(ValueError, match="empty mask"):
+        psnr(pred[0], gt[0], torch.zeros(6, 8, dtype=torch.bool))
+    with pytest.raises(ValueError, match="mask shape"):
+        psnr(pred[0], gt[0], torch.ones(6, 9, dtype=torch.bool))
+
+
 def test_psnr_of_identical_images_is_finite():
     img = torch.rand(5, 5, 3)
     assert psnr(img, img).item() == pytest.approx(-10 * np.log10(MSE_FLOOR))

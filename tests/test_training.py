@@ -121,5 +121,8 @@ def test_uw3dgs_variants_train_and_report_their_metrics(make_config, name):
     assert ("depth_loss" in losses) == (name in ("uw3dgs", "uw3dgs-no-lbeta"))
     summary = trainer.eval_all(13)
     assert ("uri_psnr" in summary) == has_medium
+    assert ("uri_psnr_covisible" in summary) == has_medium
+    # the synthetic scene has ground-truth ranges: the co-visible PSNR is measured, over most of each view
+    assert "psnr_covisible" in summary and 0.5 < summary["covisible_share"] <= 1.0
     assert ("beta_d_rel_error" in summary) == has_medium
     assert "depth_abs_rel" in summary

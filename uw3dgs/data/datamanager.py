@@ -16,10 +16,12 @@ import torch.nn.functional as F
 
 from uw3dgs.cameras import Camera
 from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.data.covisibility import covisible_mask
 from uw3dgs.data.scene import GroundTruth, SceneData
 
 Batch = dict[str, Any]
-"""One view: 'index', 'camera', 'image' [H, W, 3]; plus 'clean_image' and 'range' where known."""
+"""One view: 'index', 'camera', 'image' [H, W, 3]; plus 'clean_image' and 'range' where known (and, for test
+views, 'covisible')."""
 
 
 @dataclass(frozen=True)
@@ -118,8 +120,14 @@ class DataManager:
         return self.get_batch(self._queue.pop())
 
     def test_batches(self):
+        """Test views; with ground-truth ranges also 'covisible' [H, W], the pixels whose surface some training
+        view has in its field of view (`covisible_mask`): metrics over them leave out what no model can know."""
+        train_cameras = [self.cameras[i] for i in self.train_indices]
         for index in self.test_indices:
-            yield self.get_batch(index)
+            batch = self.get_batch(index)
+            if "range" in batch:
+                batch["covisible"] = covisible_mask(batch["camera"], batch["range"], train_cameras)
+            yield batch
 
     def state_dict(self) -> dict[str, Any]:
         """What a resumed run needs to draw the same views as an uninterrupted one."""

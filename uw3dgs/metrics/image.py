@@ -32,14 +32,24 @@ def _check_pair(pred: Tensor, gt: Tensor) -> None:
         raise ValueError(f"expected [H, W, C] or [B, H, W, C] images, got shape {tuple(pred.shape)}")
 
 
-def psnr(pred: Tensor, gt: Tensor) -> Tensor:
+def psnr(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> Tensor:
     """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1), one value per image.
 
     Returns a 0-dim tensor for [H, W, C] inputs and a [B] tensor for [B, H, W, C] inputs. Inputs are
-    not clamped: clamp renders to [0, 1] before evaluating, as the 3DGS evaluation does.
+    not clamped: clamp renders to [0, 1] before evaluating, as the 3DGS evaluation does. `mask` [H, W] or
+    [B, H, W] (bool) restricts the mean squared error to its pixels (masked PSNR); an empty mask is an error.
     """
     _check_pair(pred, gt)
-    mse = (pred - gt).square().mean(dim=(-3, -2, -1))
+    squared = (pred - gt).square().mean(dim=-1)
+    if mask is None:
+        mse = squared.mean(dim=(-2, -1))
+    else:
+        if mask.shape != squared.shape:
+            raise ValueError(f"mask shape {tuple(mask.shape)} does not match the images' {tuple(squared.shape)}")
+        count = mask.sum(dim=(-2, -1))
+        if bool((count == 0).any()):
+            raise ValueError("masked PSNR of an empty mask is undefined")
+        mse = (squared * mask).sum(dim=(-2, -1)) / count
     return -10.0 * torch.log10(mse.clamp_min(MSE_FLOOR))
 
 

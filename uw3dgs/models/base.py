@@ -50,9 +50,14 @@ class Model(nn.Module):
         return {}
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
-        """Per-test-view metrics for evaluation: PSNR and SSIM of 'rgb' against the dataset's image."""
+        """Per-test-view metrics for evaluation: PSNR and SSIM of 'rgb' against the dataset's image, and the PSNR
+        over the pixels training views see where the dataset tells them ('covisible')."""
         pred = outputs["rgb"].detach().clamp(0, 1)
-        return {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
+        metrics = {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
+        if "covisible" in batch:
+            metrics["psnr_covisible"] = float(psnr(pred, batch["image"], batch["covisible"]))
+            metrics["covisible_share"] = float(batch["covisible"].float().mean())
+        return metrics
 
     def get_eval_summary(self, scene: SceneData) -> dict[str, float]:
         """Whole-model numbers for evaluation (not per view), e.g. the learned medium against ground truth."""
