@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -105,6 +106,8 @@ def test_uw_eval_writes_nerfstudio_shaped_json(make_config):
     assert results["psnr"] == pytest.approx(expected["psnr"], abs=1e-4)
     assert len(data["per_image"]) == len(trainer.datamanager.test_indices)
     assert (trainer.run_dir / "eval" / "renders" / "compare").is_dir()
+    names = [Path(row["image"]).stem + ".png" for row in data["per_image"]]
+    assert sorted(p.name for p in (trainer.run_dir / "eval" / "renders" / "covisible").iterdir()) == sorted(names)
 
 
 @pytest.mark.parametrize("name", ["uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"])

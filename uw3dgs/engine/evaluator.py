@@ -39,6 +39,9 @@ def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True
             for key, image in images.items():
                 write_image(save_dir / key / f"{stem}.png", image)
             write_image(save_dir / "compare" / f"{stem}.png", image_grid(list(images.values()), ncols=len(images)))
+            if "covisible" in batch:  # white: some training view sees it; black: no training view does
+                mask = batch["covisible"].float()[..., None].expand(-1, -1, 3)
+                write_image(save_dir / "covisible" / f"{stem}.png", mask)
     model.train(was_training)
     summary: dict[str, float] = dict(model.get_eval_summary(datamanager.scene))
     for key in (per_image[0].keys() if per_image else []):
