@@ -54,11 +54,13 @@ class MediumGridConfig(InstantiateConfig):
     across the training views, the Gaussians' colours de-hazed to match, and L_beta pulling toward it
     (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' = beta_prior
     and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper)."""
-    estimate_iterations: int = 2000
-    """Adam iterations per channel of the 'estimate' fit, after its coarse grid search."""
+    dark_bins: int = 10
+    """'estimate' reads beta_B off the darkest observations of the points in this many range bins (Sea-thru)."""
+    dark_share: float = 0.01
+    """Share of each range bin's observations (the darkest) taken as backscatter alone (surfaces with J ~ 0)."""
     open_water_cells: int = 16
     """'estimate' reads B_inf off open water: image cells (this many across the width) that no initial point
-    lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf with the betas from the points alone."""
+    lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf to the dark observations with beta_B."""
     open_water_min_share: float = 0.01
     """Least share of the training pixels in such cells for them to count as open water (else B_inf is fitted)."""
     dehaze_unseen_with_all_poses: bool = True

@@ -1,31 +1,34 @@
 """A first estimate of a homogeneous medium from the initial (SfM) points, before any Gaussian is trained.
 
 Every initial point p is projected into every training view k that sees it in front of the camera; the
-pixel colour there is an observation I_pk of the same surface at range z_pk. The formation model
+pixel colour there is an observation I_pk of the same surface at range z_pk, and the formation model says
     I_pk = J_p exp(-beta_D z_pk) + B_inf (1 - exp(-beta_B z_pk))
-is then fitted to all observations at once: one unknown clean colour J_p per point and one homogeneous
-(beta_D, beta_B, B_inf). This is the classic SeaThru-style estimate (Akkaynak & Treibitz 2019): the
-attenuation is read off how a point's colour changes with range, the backscatter off how dark points
-brighten with range. It needs the camera-to-point range to vary across views, which it does for the
-forward-looking or surveying captures underwater datasets are made of.
+with one unknown clean colour J_p per point. The medium is read off these observations in three steps,
+as Sea-thru does (Akkaynak & Treibitz 2019):
 
-Points alone pin beta_D well but leave (B_inf, beta_B) on a flat valley: only the backscatter curve
-B_inf (1 - exp(-beta_B z)) over the observed ranges is seen. Where the views show open water, its colour
-is B_inf itself (`open_water_color`), and with B_inf fixed the betas are well determined by the points,
-best by dark ones, whose colour is almost pure backscatter.
+1. B_inf off open water (`open_water_color`): image regions no point lands in show the veiling light alone.
+2. beta_B off the darkest observations (`dark_pixels`, `fit_backscatter`): in each range bin the darkest
+   1% are taken as surfaces with J ~ 0 (shadows, crevices, dark sponges), whose colour is the backscatter
+   B_inf (1 - exp(-beta_B z)) alone. Without open water B_inf is fitted to them with beta_B.
+3. beta_D from all observations (`fit_attenuation`): how a point's colour changes with range, with each
+   J_p solved in closed form for every candidate beta_D.
+
+Why not one joint fit of everything: with J_p free, (B_inf, beta_B, J_p) trade off along a flat valley
+(a little less backscatter, a little brighter J_p), and a joint fit drifts to almost no backscatter
+(measured in the README: green and blue beta_B ~0.001-0.01 on IUI3-RedSea, a green URI). The dark
+pixels break the tie, with the one assumption that the darkest surfaces in view are nearly black.
 
 Why it exists: jointly learning the medium and the Gaussians from the constant beta_prior lets the
 Gaussians' colours (initialised from underwater points) absorb the water first, and the photometric loss
-is then almost flat along the valley of (colour, medium) pairs that explain the images equally well; the
-medium stays near where it started. Starting from this fit, and from de-hazed point colours, puts the
-model in the right valley (measurements in README, "UW-3DGS on the synthetic scene").
-
-Occlusions and points that are outliers give wrong observations; an L1 fit shrugs most of them off.
+is then almost flat along the same valley; the medium stays near where it started. Starting from this
+estimate, and from de-hazed point colours, puts the model in the right valley (README, "UW-3DGS on the
+synthetic scene"). Occlusions and outlier points give wrong observations; the beta_D fit is L1.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -114,8 +117,8 @@ def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
 
 
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
-                    dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3,
-                    iterations: int = 2000, sfm_cameras: list[Camera] | None = None) -> MediumEstimate:
+                    dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3, dark_bins: int = 10,
+                    dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
@@ -124,7 +127,7 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     views), its input colour at the range it was seen from (`color_ranges` over `sfm_cameras`, the cameras of
     all the views SfM matched; the training `cameras` when None). A colour left underwater would carry the
     water twice once the model adds it. `b_inf` [3], when given (read off open water by `open_water_color`),
-    is kept and only the betas are fitted.
+    is kept; `dark_bins` and `dark_share` choose the backscatter samples (`dark_pixels`).
     """
     points = points.float()
     idx, obs, ranges = observe_points(points, cameras, images)
@@ -133,7 +136,7 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
         raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
-    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, iterations)
+    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, dark_bins, dark_share)
     seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed, local = torch.unique(idx, return_inverse=True)
@@ -166,69 +169,88 @@ def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, 
     return clean[..., point] * direct + back - color, clean
 
 
-def _grid_start(point: Tensor, color: Tensor, z: Tensor, num_points: int, steps: int,
-                b_inf: float | None) -> tuple[float, float, float]:
-    """The best (beta_D, beta_B, B_inf) of one channel on a coarse grid: a global start for the refinement.
-
-    The L1 landscape has long flat valleys (B_inf against beta_B where backscatter is faint), so a local
-    method started at an arbitrary prior can stall in the wrong one. Betas span optical depths 0.02 to 5
-    at the median range, whatever the dataset's units. A given `b_inf` is not searched.
-    """
-    scale = float(z.median())
-    betas = torch.logspace(math.log10(0.02), math.log10(5.0), steps) / scale
-    veils = torch.linspace(0.02, 0.98, steps) if b_inf is None else torch.tensor([b_inf])
-    bd, bb, b = torch.meshgrid(betas, betas, veils, indexing="ij")
-    bd, bb, b = bd.reshape(-1), bb.reshape(-1), b.reshape(-1)
-    losses = torch.cat([_profiled_residual(point, color, z, bd[i:i + 256], bb[i:i + 256], b[i:i + 256],
-                                           num_points)[0].abs().mean(-1) for i in range(0, len(bd), 256)])
-    best = int(losses.argmin())
-    return float(bd[best]), float(bb[best]), float(b[best])
+def _refined_argmin(loss: Callable[[Tensor], Tensor], grid: Tensor, rounds: int = 2) -> Tensor:
+    """The candidate of the increasing 1-D `grid` with the smallest `loss` (vectorised over candidates),
+    refined `rounds` times on an equally fine grid between the best candidate's neighbours."""
+    for _ in range(rounds + 1):
+        best = int(loss(grid).argmin())
+        result = grid[best]
+        grid = torch.linspace(float(grid[max(best - 1, 0)]), float(grid[min(best + 1, len(grid) - 1)]), len(grid),
+                              dtype=grid.dtype)
+    return result
 
 
-def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, iterations: int = 2000,
-               lr: float = 0.02, grid_steps: int = 16, grid_observations: int = 4096,
-               fit_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor]:
-    """L1 fit of color[m] = J[point[m]] exp(-beta_D z[m]) + B_inf (1 - exp(-beta_B z[m])), per channel.
+def _beta_grid(z: Tensor, steps: int) -> Tensor:
+    """Candidate betas: optical depths 0.01 to 10 at the median range, log-spaced, whatever the units."""
+    return torch.logspace(math.log10(0.01), math.log10(10.0), steps, dtype=torch.float64) / float(z.median())
 
-    point [M] in 0..P-1 (every value present), color [M, 3], z [M] > 0; `b_inf` [3] fixes the veiling light
-    (read off open water) instead of fitting it. Returns beta_D, beta_B, B_inf [3] (`clean_colors` gives the
-    J_p for them). Each channel is independent: a coarse grid search on a random `grid_observations` of the
-    observations, then Adam on `fit_observations` of them (so big SfM models cost no more than small ones),
-    with the J_p profiled out. L1 tolerates occluded or outlying observations.
-    """
-    z = z.float()
-    order = torch.randperm(len(point), generator=torch.Generator().manual_seed(0))
 
-    def sample(count: int) -> tuple[Tensor, Tensor, int]:  # (observations, their re-numbered points, #points)
-        subset = order[:count]
-        points, local = torch.unique(point[subset], return_inverse=True)
-        return subset, local, len(points)
+def dark_pixels(z: Tensor, color: Tensor, bins: int = 10, share: float = 0.01) -> tuple[Tensor, Tensor]:
+    """The darkest `share` (by RGB sum, at least one) of the observations color [M, 3] in each of `bins`
+    equally populated range bins of z [M]: Sea-thru's backscatter samples. Returns their z [K], colours [K, 3]."""
+    edges = torch.quantile(z.double(), torch.linspace(0, 1, bins + 1, dtype=torch.float64))
+    which = torch.bucketize(z.double(), edges[1:-1])
+    picked = []
+    for b in range(bins):
+        members = torch.nonzero(which == b).squeeze(1)
+        if len(members):
+            order = color[members].sum(dim=-1).argsort()
+            picked.append(members[order[:max(1, int(share * len(members)))]])
+    picked = torch.cat(picked)
+    return z[picked], color[picked]
 
-    grid, grid_local, grid_points = sample(grid_observations)
-    fit, fit_local, fit_points = sample(fit_observations)
-    results = []
+
+def fit_backscatter(z: Tensor, color: Tensor, b_inf: Tensor | None = None, steps: int = 300,
+                    max_samples: int = 1024) -> tuple[Tensor, Tensor]:
+    """Least-squares fit of B_inf (1 - exp(-beta_B z)) to backscatter samples color [K, 3] at ranges z [K]
+    (`dark_pixels`; a random `max_samples` of them), per channel. `b_inf` [3] fixes the veiling light;
+    without it B_inf is searched too. Returns beta_B, B_inf [3]."""
+    if len(z) > max_samples:  # the B_inf search costs candidates^2 x samples
+        keep = torch.randperm(len(z), generator=torch.Generator().manual_seed(0))[:max_samples]
+        z, color = z[keep], color[keep]
+    z, color = z.double(), color.double()
+    betas = _beta_grid(z, steps)
+    beta_b, veil = [], []
     for c in range(3):
-        fixed = None if b_inf is None else float(b_inf[c])
-        start = _grid_start(grid_local, color[grid, c].float(), z[grid], grid_points, grid_steps, fixed)
-        logs = [math.log(start[0]), math.log(start[1])]  # log beta_D, log beta_B and, unless fixed, logit B_inf
-        if fixed is None:
-            logs.append(math.log(start[2] / (1 - start[2])))
-        params = torch.tensor(logs, requires_grad=True)
+        def sse(beta: Tensor, v: Tensor, y: Tensor = color[:, c]) -> Tensor:  # candidates broadcast over samples
+            return (v[..., None] * (1 - torch.exp(-beta[..., None] * z)) - y).square().mean(-1)
 
-        def medium(params: Tensor = params, fixed: float | None = fixed) -> tuple[Tensor, Tensor, Tensor]:
-            veil = torch.sigmoid(params[2]) if fixed is None else torch.tensor(fixed)
-            return params[0].exp(), params[1].exp(), veil
+        if b_inf is None:  # profile beta_B out on its grid, then search B_inf
+            v = _refined_argmin(lambda v: torch.cat([sse(betas[None, :], chunk[:, None]).min(-1).values
+                                                     for chunk in v.split(8)]),
+                                torch.linspace(0.01, 0.99, 99, dtype=torch.float64))
+        else:
+            v = b_inf[c].double()
+        beta_b.append(_refined_argmin(lambda beta, v=v: sse(beta, v.expand_as(beta)), betas))
+        veil.append(v)
+    return torch.stack(beta_b).float(), torch.stack(veil).float()
 
-        optimizer = torch.optim.Adam([params], lr=lr)
-        # decay to lr / 100: Adam at a constant rate hovers around an L1 minimum instead of settling in it
-        schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, gamma=0.01 ** (1 / max(iterations, 1)))
-        for _ in range(iterations):
-            optimizer.zero_grad()
-            _profiled_residual(fit_local, color[fit, c].float(), z[fit], *medium(),
-                               fit_points)[0].abs().mean().backward()
-            optimizer.step()
-            schedule.step()
-        with torch.no_grad():
-            results.append(medium())
-    beta_d, beta_b, b_inf = (torch.stack(x, dim=-1) for x in zip(*results, strict=True))
-    return beta_d, beta_b, b_inf
+
+def fit_attenuation(point: Tensor, color: Tensor, z: Tensor, beta_b: Tensor, b_inf: Tensor, steps: int = 300,
+                    max_observations: int = 50_000) -> Tensor:
+    """L1 fit of beta_D [3] to observations color [M, 3] of points point [M] (0..P-1, every value present) at
+    ranges z [M], with the backscatter known; each J_p in closed form per candidate. A random
+    `max_observations` of them enter (so big SfM models cost no more than small ones)."""
+    subset = torch.randperm(len(point), generator=torch.Generator().manual_seed(0))[:max_observations]
+    points, local = torch.unique(point[subset], return_inverse=True)
+    z, color = z[subset].float(), color[subset].float()
+    betas = _beta_grid(z, steps).float()
+    beta_d = []
+    for c in range(3):
+        def loss(candidates: Tensor, c: int = c) -> Tensor:
+            return torch.cat([
+                _profiled_residual(local, color[:, c], z, chunk, beta_b[c].expand_as(chunk),
+                                   b_inf[c].expand_as(chunk), len(points))[0].abs().mean(-1)
+                for chunk in candidates.split(32)])
+
+        beta_d.append(_refined_argmin(loss, betas))
+    return torch.stack(beta_d)
+
+
+def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, bins: int = 10,
+               share: float = 0.01) -> tuple[Tensor, Tensor, Tensor]:
+    """The homogeneous medium of observations color [M, 3] of points point [M] (0..P-1, every value present)
+    at ranges z [M] > 0: beta_B (and B_inf unless `b_inf` [3] is given) from the dark pixels, then beta_D.
+    Returns beta_D, beta_B, B_inf [3]; `clean_colors` gives the J_p for them."""
+    beta_b, b_inf = fit_backscatter(*dark_pixels(z, color, bins, share), b_inf=b_inf)
+    return fit_attenuation(point, color, z, beta_b, b_inf), beta_b, b_inf

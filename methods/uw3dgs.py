@@ -75,7 +75,7 @@ class UW3DGSModel(GaussianSplattingModel):
             f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
         print(f"uw3dgs: medium estimate: B_inf {source}", file=sys.stderr)
         estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
-                                   b_inf=water, iterations=mc.estimate_iterations,
+                                   b_inf=water, dark_bins=mc.dark_bins, dark_share=mc.dark_share,
                                    sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,

@@ -130,8 +130,7 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     model = dataclasses.replace(
         spec.model,
         densification=dataclasses.replace(base.model.densification, refine_start=100, refine_every=50),
-        gaussians=dataclasses.replace(base.model.gaussians, sh_degree_interval=100),
-        medium=dataclasses.replace(spec.model.medium, estimate_iterations=500))
+        gaussians=dataclasses.replace(base.model.gaussians, sh_degree_interval=100))
     trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers,
                                           steps_per_eval_all_images=10_000, steps_per_eval_image=10_000))
     trainer.setup()
