@@ -38,6 +38,11 @@ def test_training_learns_and_writes_the_run_folder(make_config):
     assert list(run_dir.glob("events.out.tfevents.*"))
     saved = load_config(run_dir / "config.yml")
     assert saved == trainer.config
+    # a config from another version (an option since removed) names the file, the option and the fix
+    stale = run_dir / "stale.yml"
+    stale.write_text((run_dir / "config.yml").read_text().replace("  llffhold:", "  old_knob: 1\n  llffhold:", 1))
+    with pytest.raises(ValueError, match=r"stale.yml: .*no option\(s\) \['old_knob'\].*delete those lines"):
+        load_config(stale)
 
 
 def test_resume_matches_an_uninterrupted_run(make_config, monkeypatch):

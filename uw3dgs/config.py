@@ -121,4 +121,9 @@ def load_config(path: Path) -> Any:
     data = yaml.safe_load(path.read_text())
     if not isinstance(data, dict) or "_type" not in data:
         raise ValueError(f"{path} is not a uw3dgs config (no '_type' key at the top)")
-    return config_from_dict(data)
+    try:
+        return config_from_dict(data)
+    except ValueError as err:
+        raise ValueError(f"{path}: {err}. A typo, or a run written by another uw3dgs version whose options "
+                         "have since been renamed or removed: fix or delete those lines (see `uw-train METHOD "
+                         "--help` for the current options)") from err
