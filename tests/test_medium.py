@@ -119,10 +119,11 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
 
     The scene's views show open water (B_inf on its own) and near-black patches (backscatter alone), which
     is what makes the medium identifiable (README, "UW-3DGS on the built-in synthetic scene": the full-size
-    scene gets every parameter within 9%). Tolerances, for 12 training views of 64x48 px and 400 steps,
-    from seeds 0-2 of this scene: B_inf within 6% (bound 10%), beta_D within 13% (bound 20%), beta_B
-    within 24% (bound 30%; seed 0's green is the worst); and the water-free render must be far closer to
-    the clean ground truth than the underwater input is (19.7-21.4 dB against 11.8-12.2 dB).
+    scene gets every parameter within 12%). Tolerances, for 12 training views of 64x48 px and 400 steps,
+    from seeds 0-2 of this scene: B_inf within 4.8% (bound 10%), beta_D within 2.9% (bound 10%), beta_B
+    within 13.3% (bound 20%; red is the worst: the dark patches' albedo 0.03 reads as a little extra
+    backscatter); and the water-free render must be far closer to the clean ground truth than the
+    underwater input is (20.8-21.7 dB against 11.8-12.2 dB).
     """
     scene = SyntheticSceneConfig(width=64, height=48, num_views=16)
     base = tiny_train_config(tmp_path, cache_dir, scene, steps=400)
@@ -139,7 +140,7 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     truth = trainer.datamanager.scene.gt.medium
     learned = trainer.model.medium_summary()
     true_d, true_b, true_inf = (torch.tensor(truth[k]) for k in ("beta_D", "beta_B", "B_inf"))
-    for name, truth_, bound in (("b_inf", true_inf, 0.10), ("beta_d", true_d, 0.20), ("beta_b", true_b, 0.30)):
+    for name, truth_, bound in (("b_inf", true_inf, 0.10), ("beta_d", true_d, 0.10), ("beta_b", true_b, 0.20)):
         assert ((learned[name] - truth_).abs() / truth_).max() < bound, (name, learned[name], truth_)
 
     uri, underwater = [], []
@@ -149,4 +150,4 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
             outputs = trainer.model.get_outputs(batch["camera"])
             uri.append(psnr(outputs["uri"].clamp(0, 1), batch["clean_image"]))
             underwater.append(psnr(batch["image"], batch["clean_image"]))
-    assert sum(uri) / len(uri) > sum(underwater) / len(underwater) + 5.0
+    assert sum(uri) / len(uri) > sum(underwater) / len(underwater) + 7.0
