@@ -221,6 +221,21 @@ def test_lawnmower_path(tmp_path):
     assert (forward[:, 2] < 0).all()  # looking down
 
 
+def test_loop_path(tmp_path):
+    config = dataclasses.replace(SMALL, path="loop", num_views=8, num_points=200)
+    scene = read_seathru_layout(generate_scene(config, tmp_path / "loop", progress=False))
+    centres = np.stack([c.center.numpy() for c in scene.cameras])
+    radius = np.linalg.norm(centres[:, :2], axis=1)
+    np.testing.assert_allclose(radius, config.loop_radius, atol=4 * config.pose_jitter)
+    forward = np.stack([c.viewmat[2, :3].numpy() for c in scene.cameras])  # optical axes in world
+    inward = -centres[:, :2] / radius[:, None]
+    horizontal = forward[:, :2] / np.linalg.norm(forward[:, :2], axis=1, keepdims=True)
+    assert ((horizontal * inward).sum(axis=1) > np.cos(np.radians(10))).all()  # facing the centre
+    assert (forward[:, 2] < 0).all()  # looking down
+    steps = np.linalg.norm(np.diff(centres[:, :2], axis=0, append=centres[:1, :2]), axis=1)
+    assert steps.max() < 2 * steps.min()  # closed: the last view is as near the first as its other neighbour
+
+
 def test_reader_variants(scene_copy):
     """Lower-case images_wb/, a SIMPLE_PINHOLE camera, and near/far from the points without poses_bounds."""
     (scene_copy / "Images_wb").rename(scene_copy / "images_wb")

@@ -41,8 +41,10 @@ class SyntheticSceneConfig:
     """Image height in pixels."""
     fov_deg: float = 60.0
     """Horizontal field of view in degrees (pinhole, square pixels, principal point at the centre)."""
-    path: Literal["forward", "lawnmower"] = "forward"
-    """Camera path: a gently swaying forward pass (like SeaThru-NeRF captures) or a lawnmower survey."""
+    path: Literal["forward", "lawnmower", "loop"] = "forward"
+    """Camera path: a gently swaying forward pass (like SeaThru-NeRF captures), a lawnmower survey, or a loop
+    around the scene centre looking inward (a diver circling a coral head: every view has neighbours on both
+    sides, so no test view looks past the end of the path)."""
     altitude: float = 3.0
     """Camera height above the mean seabed, in metres."""
     tilt_deg: float = 55.0
@@ -54,6 +56,8 @@ class SyntheticSceneConfig:
     """Number of parallel lines of the lawnmower path (alternating direction)."""
     line_spacing: float = 1.5
     """Distance between lawnmower lines, in metres."""
+    loop_radius: float = 3.0
+    """Radius of the loop path, in metres."""
     pose_jitter: float = 0.05
     """Standard deviation of random camera position perturbations, in metres (a real diver wobbles)."""
     angle_jitter_deg: float = 2.0
@@ -417,6 +421,11 @@ def _path(cfg: SyntheticSceneConfig) -> tuple[np.ndarray, np.ndarray]:
         sway = 0.3 * np.sin(2 * np.pi * s / cfg.path_length)
         slope = 0.3 * 2 * np.pi / cfg.path_length * np.cos(2 * np.pi * s / cfg.path_length)
         return np.stack([sway, s, np.full(n, cfg.altitude)], axis=1), np.arctan2(1.0, slope)
+    if cfg.path == "loop":
+        angle = 2 * np.pi * np.arange(n) / n
+        r = cfg.loop_radius
+        centres = np.stack([r * np.cos(angle), r * np.sin(angle), np.full(n, cfg.altitude)], axis=1)
+        return centres, angle + np.pi  # facing the centre
     centres, headings = [], []
     for line, idx in enumerate(np.array_split(np.arange(n), cfg.lawnmower_lines)):
         s = np.linspace(-half, half, len(idx)) * (1 if line % 2 == 0 else -1)
