@@ -172,12 +172,11 @@ def _profiled_residual(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, 
 def _refined_argmin(loss: Callable[[Tensor], Tensor], grid: Tensor, rounds: int = 2) -> Tensor:
     """The candidate of the increasing 1-D `grid` with the smallest `loss` (vectorised over candidates),
     refined `rounds` times on an equally fine grid between the best candidate's neighbours."""
-    for _ in range(rounds + 1):
+    for _ in range(rounds):
         best = int(loss(grid).argmin())
-        result = grid[best]
         grid = torch.linspace(float(grid[max(best - 1, 0)]), float(grid[min(best + 1, len(grid) - 1)]), len(grid),
                               dtype=grid.dtype)
-    return result
+    return grid[int(loss(grid).argmin())]
 
 
 def _beta_grid(z: Tensor, steps: int) -> Tensor:
