@@ -53,14 +53,10 @@ class MediumEstimate:
 
 def _project(points: Tensor, cam: Camera) -> tuple[Tensor, Tensor, Tensor]:
     """Indices of the `points` [P, 3] that land in `cam`'s image in front of it, and their pixel rows, columns."""
-    viewmat, K = cam.viewmat.to(points.dtype), cam.K.to(points.dtype)
-    p_cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
-    z = p_cam[:, 2]
-    uv = (p_cam[:, :2] / z.clamp_min(1e-6)[:, None]) @ K[:2, :2].T + K[:2, 2]
-    col, row = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-    inside = (z > 1e-6) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+    uv, inside = cam.project(points)
     ids = torch.nonzero(inside).squeeze(1)
-    return ids, row[ids], col[ids]
+    col, row = uv[ids].floor().long().unbind(-1)
+    return ids, row, col
 
 
 def observe_points(points: Tensor, cameras: list[Camera], images: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:

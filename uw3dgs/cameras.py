@@ -51,3 +51,14 @@ class Camera:
         """Unit world-space direction of every pixel centre's ray, [H, W, 3] (origin: `center`)."""
         d_world = self.camera_rays() @ self.viewmat[:3, :3].to(self.K.dtype)  # R^T d, as row vectors
         return torch.nn.functional.normalize(d_world, dim=-1)
+
+    def project(self, points: Tensor, w: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
+        """Pixel coordinates [P, 2] (u, v; pixel i spans [i, i + 1)) of homogeneous world points `points` [P, 3]
+        with weight `w` ([P, 1] or a number: 1 = a point, 0 = a direction at infinity), and whether each lands
+        in the image in front of the camera [P]. Computed in the dtype of `points`."""
+        R, t, K = (x.to(points.dtype) for x in (self.viewmat[:3, :3], self.viewmat[:3, 3], self.K))
+        p = points @ R.T + w * t
+        z = p[:, 2]
+        uv = p[:, :2] / z.clamp_min(1e-12)[:, None] @ K[:2, :2].T + K[:2, 2]
+        inside = (z > 1e-12) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+        return uv, inside

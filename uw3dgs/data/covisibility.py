@@ -30,9 +30,5 @@ def covisible_mask(camera: Camera, ranges: Tensor, others: list[Camera]) -> Tens
     w = finite.double()[:, None]
     seen = torch.zeros(len(r), dtype=torch.bool, device=dirs.device)
     for other in others:
-        R, t, K = other.viewmat[:3, :3].double(), other.viewmat[:3, 3].double(), other.K.double()
-        p = xyz @ R.T + w * t
-        z = p[:, 2]
-        uv = p[:, :2] / z.clamp_min(1e-12)[:, None] @ K[:2, :2].T + K[:2, 2]
-        seen |= (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < other.width) & (uv[:, 1] >= 0) & (uv[:, 1] < other.height)
+        seen |= other.project(xyz, w)[1]
     return seen.view(camera.height, camera.width)

@@ -98,6 +98,7 @@ class DataManager:
         self.cameras = [c.to(self.device) for c in self.scene.cameras]
         self._generator = torch.Generator().manual_seed(seed)
         self._queue: list[int] = []
+        self._covisible: dict[int, torch.Tensor] = {}
 
     def load_scene(self, data: Path | None) -> SceneData:
         raise NotImplementedError(f"{type(self).__name__} must implement load_scene()")
@@ -122,11 +123,13 @@ class DataManager:
     def test_batches(self):
         """Test views; with ground-truth ranges also 'covisible' [H, W], the pixels whose surface some training
         view has in its field of view (`covisible_mask`): metrics over them leave out what no model can know."""
-        train_cameras = [self.cameras[i] for i in self.train_indices]
         for index in self.test_indices:
             batch = self.get_batch(index)
             if "range" in batch:
-                batch["covisible"] = covisible_mask(batch["camera"], batch["range"], train_cameras)
+                if index not in self._covisible:  # fixed by the split: computed at the first evaluation only
+                    train_cameras = [self.cameras[i] for i in self.train_indices]
+                    self._covisible[index] = covisible_mask(batch["camera"], batch["range"], train_cameras)
+                batch["covisible"] = self._covisible[index]
             yield batch
 
     def state_dict(self) -> dict[str, Any]:
