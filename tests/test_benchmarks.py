@@ -1,0 +1,79 @@
+"""The analysis scripts in benchmarks/ that read trained runs: they agree with uw-eval and invert the medium."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import tiny_train_config
+
+from uw3dgs.engine.trainer import Trainer
+from uw3dgs.registry import METHODS
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def load_script(name: str):
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def uw3dgs_run(tmp_path_factory, cache_dir, tiny_scene_config):
+    spec = METHODS["uw3dgs"].config
+    base = tiny_train_config(tmp_path_factory.mktemp("runs"), cache_dir, tiny_scene_config, steps=20,
+                             timestamp="bench")
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
+    trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers))
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+def cells(row: str) -> list[str]:
+    return [c.strip() for c in row.strip("|").split("|")]
+
+
+def test_unseen_pixels_agrees_with_uw_eval(uw3dgs_run):
+    script = load_script("unseen_pixels")
+    summary = uw3dgs_run.eval_all(20)
+    nothing_large = [cells(r) for r in script.view_rows(uw3dgs_run.run_dir / "config.yml", large=float("inf"))]
+    assert len(nothing_large) == len(uw3dgs_run.datamanager.test_indices)
+    full = [float(r[6]) for r in nothing_large]
+    assert sum(full) / len(full) == pytest.approx(summary["psnr"], abs=0.01)
+    assert sum(float(r[5]) for r in nothing_large) / len(full) == pytest.approx(summary["psnr_covisible"], abs=0.01)
+    assert all(r[3:7] == r[7:11] and r[11] == "0" for r in nothing_large)  # nothing switched off: same numbers
+    # every Gaussian switched off: the render is open water alone, B_inf everywhere
+    everything = [cells(r) for r in script.view_rows(uw3dgs_run.run_dir / "config.yml", large=-1.0)]
+    b_inf = uw3dgs_run.model.medium.b_inf.detach()
+    for row, batch in zip(everything, uw3dgs_run.datamanager.test_batches(), strict=True):
+        water = -10 * torch.log10((b_inf.clamp(0, 1) - batch["image"]).square().mean())
+        assert float(row[10]) == pytest.approx(float(water), abs=0.01)
+        assert row[7] in ("0.00", "-")
+
+
+def test_uri_error_bands_cover_every_pixel_and_true_medium_inverts_formation(uw3dgs_run):
+    script = load_script("uri_error")
+    rows = [cells(r) for r in script.band_table(uw3dgs_run.run_dir / "config.yml", [0, 3, 6], set(), False)]
+    *bands, total = rows
+    assert sum(float(r[1].rstrip("%")) for r in bands) == pytest.approx(100, abs=0.5)
+    summary = uw3dgs_run.eval_all(20)
+    assert float(total[2]) <= summary["uri_psnr"] + 0.01  # PSNR of the pooled error <= the mean per-view PSNR
+    # with the model's own medium in place of the truth, de-hazing its UWI gives back its URI exactly
+    model = uw3dgs_run.model
+    camera = uw3dgs_run.datamanager.cameras[uw3dgs_run.datamanager.test_indices[0]]
+    model.medium.set_homogeneous(torch.tensor([0.4, 0.2, 0.1]), torch.tensor([0.3, 0.25, 0.2]),
+                                 torch.tensor([0.05, 0.25, 0.35]))
+    with torch.no_grad():
+        outputs = model.get_outputs(camera)
+    own = {"beta_D": [0.4, 0.2, 0.1], "beta_B": [0.3, 0.25, 0.2], "B_inf": [0.05, 0.25, 0.35]}
+    dehazed = script.dehaze_with_truth(outputs, own, model.dataset_scale)
+    covered = outputs["alpha"] > 0.5
+    assert torch.allclose(dehazed[covered], outputs["uri"][covered], atol=1e-4)
