@@ -33,6 +33,7 @@ def view_rows(config_path: Path, large: float) -> list[str]:
             raise SystemExit(f"{config_path}: the dataset has no ground-truth ranges, so no pixel can be called "
                              "unseen; run this on a synthetic scene")
         seen = batch["covisible"]
+        any_unseen = bool((~seen).any())
         name = datamanager.scene.image_names[batch["index"]]
         cells = [f"{config.method_name} seed {config.seed}", name, f"{float((~seen).float().mean()):.1%}"]
         for switch_off in (False, True):
@@ -43,9 +44,9 @@ def view_rows(config_path: Path, large: float) -> list[str]:
                 out = model.get_outputs(batch["camera"])
             gaussians.opacities.data.copy_(saved)
             render, gt = out["rgb"].clamp(0, 1), batch["image"]
-            unseen = f"{float(psnr(render, gt, ~seen)):.2f}" if bool((~seen).any()) else "-"
-            cells += [f"{float(out['alpha'][~seen].mean()):.2f}" if bool((~seen).any()) else "-", unseen,
-                      f"{float(psnr(render, gt, seen)):.2f}", f"{float(psnr(render, gt)):.2f}"]
+            unseen = [f"{float(out['alpha'][~seen].mean()):.2f}", f"{float(psnr(render, gt, ~seen)):.2f}"] \
+                if any_unseen else ["-", "-"]
+            cells += [*unseen, f"{float(psnr(render, gt, seen)):.2f}", f"{float(psnr(render, gt)):.2f}"]
         rows.append("| " + " | ".join(cells) + f" | {int(is_large.sum())} |")
     return rows
 
@@ -53,7 +54,8 @@ def view_rows(config_path: Path, large: float) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("configs", nargs="+", type=Path, help="config.yml of trained runs")
-    parser.add_argument("--large", type=float, default=2.0, help="largest axis (world units) of a 'large' Gaussian")
+    parser.add_argument("--large", type=float, default=2.0,
+                        help="largest axis, in the run's world units, of a 'large' Gaussian")
     args = parser.parse_args()
     print(f"| run | view | unseen share | alpha unseen | PSNR unseen | PSNR seen | PSNR | large off: alpha unseen | "
           f"PSNR unseen | PSNR seen | PSNR | large (> {args.large:g}) |")
