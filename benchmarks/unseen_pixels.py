@@ -23,10 +23,22 @@ from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.metrics.image import psnr
 
 
+def render_without(model, camera, off: torch.Tensor | None) -> dict:
+    """The model's outputs for `camera` with the Gaussians in the mask `off` at opacity 0 (none when None)."""
+    opacities = model.gaussians.opacities
+    saved = opacities.detach().clone()
+    if off is not None:
+        opacities.data[off] = torch.finfo(saved.dtype).min
+    try:
+        with torch.no_grad():
+            return model.get_outputs(camera)
+    finally:
+        opacities.data.copy_(saved)
+
+
 def view_rows(config_path: Path, large: float) -> list[str]:
     config, datamanager, model, _ = load_trained(config_path)
-    gaussians = model.gaussians
-    is_large = gaussians.scales.detach().exp().max(dim=-1).values > large
+    is_large = model.gaussians.scales.detach().exp().max(dim=-1).values > large
     rows = []
     for batch in datamanager.test_batches():
         if "covisible" not in batch:
@@ -36,13 +48,8 @@ def view_rows(config_path: Path, large: float) -> list[str]:
         any_unseen = bool((~seen).any())
         name = datamanager.scene.image_names[batch["index"]]
         cells = [f"{config.method_name} seed {config.seed}", name, f"{float((~seen).float().mean()):.1%}"]
-        for switch_off in (False, True):
-            saved = gaussians.opacities.detach().clone()
-            if switch_off:
-                gaussians.opacities.data[is_large] = torch.finfo(saved.dtype).min
-            with torch.no_grad():
-                out = model.get_outputs(batch["camera"])
-            gaussians.opacities.data.copy_(saved)
+        for off in (None, is_large):
+            out = render_without(model, batch["camera"], off)
             render, gt = out["rgb"].clamp(0, 1), batch["image"]
             unseen = [f"{float(out['alpha'][~seen].mean()):.2f}", f"{float(psnr(render, gt, ~seen)):.2f}"] \
                 if any_unseen else ["-", "-"]

@@ -27,10 +27,19 @@ from uw3dgs.fields.medium import form_underwater_image
 
 def dehaze_with_truth(outputs: dict, medium: dict, dataset_scale: float) -> torch.Tensor:
     """The clean radiance [H, W, 3] the rendered UWI implies under the true homogeneous `medium`."""
-    beta_d, beta_b, b_inf = (torch.tensor(medium[k]).expand_as(outputs["rgb"]) for k in ("beta_D", "beta_B", "B_inf"))
+    beta_d, beta_b, b_inf = (torch.tensor(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))  # [3], broadcast
     water = form_underwater_image(torch.zeros_like(outputs["rgb"]), outputs["alpha"], outputs["range"], beta_d,
-                                  beta_b, b_inf[0, 0], dataset_scale)
+                                  beta_b, b_inf, dataset_scale)
     return (outputs["rgb"] - water["backscatter"]) / water["attenuation"]
+
+
+def grey_levels(mean_error: torch.Tensor) -> str:
+    return "(" + ", ".join(f"{float(x) * 255:+.1f}" for x in mean_error) + ")"
+
+
+def pooled_psnr(error: torch.Tensor) -> float:
+    """PSNR of the mean squared error over all the pixels of `error` [M, 3] (peak 1)."""
+    return float(-10 * torch.log10(error.square().mean()))
 
 
 def band_table(config_path: Path, edges: list[float], skip: set[str], true_medium: bool) -> list[str]:
@@ -61,12 +70,10 @@ def band_table(config_path: Path, edges: list[float], skip: set[str], true_mediu
         if not bool(member.any()):
             continue
         e = error[member]
-        band_psnr, pixels = -10 * torch.log10(e.square().mean()), member.double().mean()
-        bias = ", ".join(f"{float(x) * 255:+.1f}" for x in e.mean(0))
         share = ", ".join(f"{float(x):.0%}" for x in e.square().sum(0) / total.sum())
-        rows.append(f"| {label} | {float(pixels):.1%} | {float(band_psnr):.1f} | ({bias}) | ({share}) |")
-    rows.append(f"| all | 100% | {float(-10 * torch.log10(error.square().mean())):.1f} | "
-                f"({', '.join(f'{float(x) * 255:+.1f}' for x in error.mean(0))}) | |")
+        rows.append(f"| {label} | {float(member.double().mean()):.1%} | {pooled_psnr(e):.1f} | "
+                    f"{grey_levels(e.mean(0))} | ({share}) |")
+    rows.append(f"| all | 100% | {pooled_psnr(error):.1f} | {grey_levels(error.mean(0))} | |")
     return rows
 
 
