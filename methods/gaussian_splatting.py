@@ -17,6 +17,7 @@ from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.densification import DensificationConfig, Densifier
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
+from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.registry import MethodSpec
@@ -77,6 +78,15 @@ class GaussianSplattingModel(Model):
         return {"rgb": rgb, "alpha": out.alpha, "depth": depth,
                 "range": depth * camera.ray_norms(), "means2d": out.means2d, "radii": out.radii,
                 "raster": out, "image_size": (camera.width, camera.height)}
+
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+        """Adds `depth_abs_rel` (rendered against true range) where the dataset has true ranges."""
+        metrics = super().get_eval_metrics(outputs, batch)
+        if "range" in batch:
+            value = range_abs_rel(outputs["range"].detach(), outputs["alpha"].detach(), batch["range"])
+            if value is not None:
+                metrics["depth_abs_rel"] = value
+        return metrics
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         lam = self.config.ssim_lambda

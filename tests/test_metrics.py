@@ -7,6 +7,7 @@ import pytest
 import torch
 from scipy.ndimage import correlate
 
+from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import MSE_FLOOR, dssim_loss, l1_loss, psnr, ssim
 
 
@@ -142,3 +143,12 @@ def test_losses():
     assert dssim_loss(gt, gt).item() == pytest.approx(0.0, abs=1e-12)
     (dssim_loss(pred, gt) + l1_loss(pred, gt)).backward()
     assert pred.grad is not None and torch.isfinite(pred.grad).all()
+
+
+def test_range_abs_rel_counts_covered_surface_pixels_only():
+    truth = torch.tensor([[2.0, 4.0], [float("inf"), 5.0]])
+    pred = torch.tensor([[2.2, 3.0], [9.0, 100.0]])
+    alpha = torch.tensor([[1.0, 0.6], [1.0, 0.5]])  # (1, 1) half covered: its range is not a surface
+    # (0, 0): 0.2 / 2, (0, 1): 1 / 4; open water (1, 0) and the half-covered pixel are left out
+    assert range_abs_rel(pred, alpha, truth) == pytest.approx((0.1 + 0.25) / 2, abs=1e-7)
+    assert range_abs_rel(pred, torch.zeros_like(alpha), truth) is None
