@@ -26,7 +26,9 @@ class DensificationConfig:
     refine_every: int = 100
     """Steps between densification events."""
     refine_stop: int | None = None
-    """Last densification step; None = half of --max-num-iterations (15k of 30k, as 3DGS)."""
+    """Last densification step (and opacity reset), at most half of --max-num-iterations; None = half
+    (15k of 30k, as 3DGS). The cap keeps a shortened run's schedule sane: a method that pins 15,000 for its
+    40,000 steps still stops at 3,000 in a 6,000-step run."""
     grad_threshold: float = 0.0002
     """Average screen-space gradient (normalised device coordinates, as 3DGS) above which a Gaussian grows."""
     percent_dense: float = 0.01
@@ -54,7 +56,8 @@ class Densifier(TrainingCallback):
         self.gaussians = gaussians
         self.optimizers = optimizers
         self.scene_extent = scene_extent
-        self.refine_stop = config.refine_stop if config.refine_stop is not None else max_num_iterations // 2
+        half = max_num_iterations // 2
+        self.refine_stop = half if config.refine_stop is None else min(config.refine_stop, half)
         self._reset_stats(gaussians.num_gaussians)
 
     def _reset_stats(self, n: int) -> None:

@@ -62,3 +62,21 @@ def test_no_reset_after_densification_stops():
     field, _, densifier = make(reset_opacity_every=3000, refine_stop=5000, refine_every=10**9)
     densifier.after_step(6000, {})
     assert torch.sigmoid(field.opacities).max() > 0.5
+
+
+def test_refine_stop_is_half_the_run_or_less():
+    field, optimizers, _ = make()
+    stops = {(stop, steps): Densifier(DensificationConfig(refine_stop=stop), field, optimizers, 1.0, steps).refine_stop
+             for stop in (None, 15000) for steps in (6000, 30000, 40000)}
+    assert stops == {(None, 6000): 3000, (None, 30000): 15000, (None, 40000): 20000,
+                     (15000, 6000): 3000, (15000, 30000): 15000, (15000, 40000): 15000}
+
+
+def test_methods_carry_their_schedules():
+    from uw3dgs.registry import METHODS
+
+    schedules = {name: (spec.config.max_num_iterations, spec.config.model.densification.refine_stop)
+                 for name, spec in METHODS.items()}
+    assert schedules["3dgs"] == (30000, None)  # 3DGS: densify until 15,000 = half of 30,000
+    for name in ("uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"):
+        assert schedules[name] == (40000, 15000), name  # DESIGN: until 15,000 of 40,000
