@@ -6,12 +6,16 @@
 Scenes with ground truth only (the synthetic ones). Over the test views (less those named in `--skip`),
 pixels are grouped by their true range (open water last) and each group gets its share of the pixels,
 its PSNR, its mean signed error per channel in 8-bit grey levels (a bias the medium explains: a beta_D
-off by d brightens the URI by exp(d z)) and its share of the total squared error per channel.
+off by d brightens the URI by exp(d z)), its share of the total squared error per channel, and the mean
+signed error of the rendered range over its covered pixels (a range short by dz darkens the URI by about
+exp(-beta_D dz) where the backscatter has saturated).
 
 `--true-medium` replaces the URI by the rendered underwater image pushed back through the formation model
 with the true medium (rendered range and coverage kept): (UWI - backscatter) / attenuation. Where that
-removes a bias, the bias was the learned medium's, not the Gaussians'. Far bands amplify any error by
-exp(beta_D z) there, so only the near bands say something.
+removes a bias, the bias was the learned medium's, not the Gaussians'. `--true-range` does the same with
+the learned medium (re-read along each ray) at the true range of every pixel with a surface: what is
+left is the learned medium's error, what goes away was the rendered range's. Both together give back the
+clean image up to the render's own UWI error. Far bands amplify any error by exp(beta_D z) there.
 """
 
 from __future__ import annotations
@@ -23,14 +27,25 @@ import torch
 
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.fields.medium import form_underwater_image
+from uw3dgs.metrics.depth import COVERED
 
 
-def dehaze_with_truth(outputs: dict, medium: dict, dataset_scale: float) -> torch.Tensor:
-    """The clean radiance [H, W, 3] the rendered UWI implies under the true homogeneous `medium`."""
-    beta_d, beta_b, b_inf = (torch.tensor(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))  # [3], broadcast
-    water = form_underwater_image(torch.zeros_like(outputs["rgb"]), outputs["alpha"], outputs["range"], beta_d,
-                                  beta_b, b_inf, dataset_scale)
+def dehaze(outputs: dict, ranges: torch.Tensor, beta_d: torch.Tensor, beta_b: torch.Tensor, b_inf: torch.Tensor,
+           dataset_scale: float) -> torch.Tensor:
+    """The clean radiance [H, W, 3] the rendered UWI implies under a medium (betas [3] or [H, W, 3]) at `ranges`."""
+    water = form_underwater_image(torch.zeros_like(outputs["rgb"]), outputs["alpha"], ranges, beta_d, beta_b,
+                                  b_inf, dataset_scale)
     return (outputs["rgb"] - water["backscatter"]) / water["attenuation"]
+
+
+def true_medium(medium: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(beta_D, beta_B, B_inf) as [3] tensors from a scene's gt/medium.json (homogeneous)."""
+    return tuple(torch.tensor(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))
+
+
+def learned_medium_at(model, camera, ranges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The model's (beta_D, beta_B) averaged along each pixel's ray to `ranges` [H, W], and its B_inf."""
+    return *model.ray_betas(camera, ranges), model.medium.b_inf.detach()
 
 
 def grey_levels(mean_error: torch.Tensor) -> str:
@@ -42,10 +57,11 @@ def pooled_psnr(error: torch.Tensor) -> float:
     return float(-10 * torch.log10(error.square().mean()))
 
 
-def band_table(config_path: Path, edges: list[float], skip: set[str], true_medium: bool) -> list[str]:
+def band_table(config_path: Path, edges: list[float], skip: set[str], use_true_medium: bool = False,
+               use_true_range: bool = False) -> list[str]:
     _, datamanager, model, _ = load_trained(config_path)
     names = datamanager.scene.image_names
-    errors, ranges = [], []
+    errors, true_ranges, range_errors = [], [], []
     for batch in datamanager.test_batches():
         if "clean_image" not in batch:
             raise SystemExit(f"{config_path}: the dataset has no clean ground truth; run this on a synthetic scene")
@@ -53,14 +69,21 @@ def band_table(config_path: Path, edges: list[float], skip: set[str], true_mediu
             continue
         with torch.no_grad():
             outputs = model.get_outputs(batch["camera"])
-        uri = dehaze_with_truth(outputs, datamanager.scene.gt.medium, model.dataset_scale) if true_medium \
-            else outputs["uri"]
+            uri = outputs["uri"]
+            if use_true_medium or use_true_range:
+                at = torch.where(batch["range"].isfinite(), batch["range"], outputs["range"]) \
+                    if use_true_range else outputs["range"]
+                medium = true_medium(datamanager.scene.gt.medium) if use_true_medium \
+                    else learned_medium_at(model, batch["camera"], at)
+                uri = dehaze(outputs, at, *medium, model.dataset_scale)
         uri = uri.clamp(0, 1)
         errors.append((uri - batch["clean_image"]).reshape(-1, 3).double())
-        ranges.append(batch["range"].reshape(-1))
+        true_ranges.append(batch["range"].reshape(-1))
+        covered = (outputs["alpha"] > COVERED) & batch["range"].isfinite()
+        range_errors.append(torch.where(covered, outputs["range"] - batch["range"], torch.nan).reshape(-1).double())
     if not errors:
         raise SystemExit("--skip left no test view")
-    error, z = torch.cat(errors), torch.cat(ranges)
+    error, z, range_error = torch.cat(errors), torch.cat(true_ranges), torch.cat(range_errors)
     total = error.square().sum(0)
     bounds = [*edges, float("inf")]
     labels = [f"{lo:g}-{hi:g}" for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)] + ["open water"]
@@ -71,9 +94,12 @@ def band_table(config_path: Path, edges: list[float], skip: set[str], true_mediu
             continue
         e = error[member]
         share = ", ".join(f"{float(x):.0%}" for x in e.square().sum(0) / total.sum())
+        dz = range_error[member]  # NaN where uncovered, and everywhere on open water (no true range)
+        bias = f"{float(dz.nanmean()):+.2f}" if bool(dz.isfinite().any()) else "-"
         rows.append(f"| {label} | {float(member.double().mean()):.1%} | {pooled_psnr(e):.1f} | "
-                    f"{grey_levels(e.mean(0))} | ({share}) |")
-    rows.append(f"| all | 100% | {pooled_psnr(error):.1f} | {grey_levels(error.mean(0))} | |")
+                    f"{grey_levels(e.mean(0))} | ({share}) | {bias} |")
+    rows.append(f"| all | 100% | {pooled_psnr(error):.1f} | {grey_levels(error.mean(0))} | | "
+                f"{float(range_error.nanmean()):+.2f} |")
     return rows
 
 
@@ -85,10 +111,13 @@ def main() -> None:
     parser.add_argument("--skip", nargs="*", default=[], help="test images to leave out, e.g. 0000.png")
     parser.add_argument("--true-medium", action="store_true",
                         help="de-haze the rendered UWI with the true medium instead of rendering the URI")
+    parser.add_argument("--true-range", action="store_true",
+                        help="de-haze the rendered UWI at the true ranges (with the learned medium, or the true one)")
     args = parser.parse_args()
-    print("| true range | pixels | URI PSNR | mean error R, G, B (grey levels) | share of all squared error R, G, B |")
-    print("|---|---:|---:|---|---|")
-    print("\n".join(band_table(args.config, args.bands, set(args.skip), args.true_medium)))
+    print("| true range | pixels | URI PSNR | mean error R, G, B (grey levels) | share of all squared error R, G, B "
+          "| rendered range - true (covered pixels) |")
+    print("|---|---:|---:|---|---|---:|")
+    print("\n".join(band_table(args.config, args.bands, set(args.skip), args.true_medium, args.true_range)))
 
 
 if __name__ == "__main__":

@@ -109,15 +109,19 @@ class UW3DGSModel(GaussianSplattingModel):
         if self.medium is None:
             outputs["rgb"] = out.render + (1.0 - out.alpha[..., None]) * self.background(out.alpha.device)
             return outputs
-        dirs = camera.ray_directions().reshape(-1, 3)
-        origin = camera.center.to(dirs.dtype)
-        beta_d, beta_b = self.medium.ray_betas(origin, dirs, ranges.reshape(-1))
-        shape = (*ranges.shape, 3)
-        formed = form_underwater_image(out.render, out.alpha, ranges, beta_d.view(shape), beta_b.view(shape),
-                                       self.medium.b_inf, self.dataset_scale)
+        beta_d, beta_b = self.ray_betas(camera, ranges)
+        formed = form_underwater_image(out.render, out.alpha, ranges, beta_d, beta_b, self.medium.b_inf,
+                                       self.dataset_scale)
         outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
-                       beta_d=beta_d.view(shape), beta_b=beta_b.view(shape))
+                       beta_d=beta_d, beta_b=beta_b)
         return outputs
+
+    def ray_betas(self, camera: Camera, ranges: Tensor) -> tuple[Tensor, Tensor]:
+        """beta_D, beta_B [H, W, 3] averaged along each pixel's ray from the camera to `ranges` [H, W]."""
+        dirs = camera.ray_directions().reshape(-1, 3)
+        beta_d, beta_b = self.medium.ray_betas(camera.center.to(dirs.dtype), dirs, ranges.reshape(-1))
+        shape = (*ranges.shape, 3)
+        return beta_d.view(shape), beta_b.view(shape)
 
     def depth_consistency(self, outputs: dict[str, Any]) -> Tensor:
         """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|."""
