@@ -49,11 +49,13 @@ class MediumGridConfig(InstantiateConfig):
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
     learn_beta: bool = True
     """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
-    init: Literal["prior", "estimate"] = "estimate"
+    init: Literal["prior", "estimate", "truth"] = "estimate"
     """Starting medium: 'estimate' (default) = a homogeneous medium fitted to the initial points' colours
     across the training views, the Gaussians' colours de-hazed to match, and L_beta pulling toward it
     (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' = beta_prior
-    and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper)."""
+    and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper); 'truth' =
+    as 'estimate' with the scene's true medium (gt/medium.json, synthetic scenes only): an oracle for analysis,
+    not a method (zero --optimizers.medium-beta.lr and --optimizers.medium-b-inf.lr keep it there)."""
     dark_bins: int = 10
     """'estimate' reads beta_B off the darkest observations of the points in this many range bins (Sea-thru)."""
     dark_share: float = 0.01

@@ -114,7 +114,8 @@ def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
 
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
                     dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3, dark_bins: int = 10,
-                    dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None) -> MediumEstimate:
+                    dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None,
+                    known: tuple[Tensor, Tensor, Tensor] | None = None) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
@@ -123,7 +124,8 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     views), its input colour at the range it was seen from (`color_ranges` over `sfm_cameras`, the cameras of
     all the views SfM matched; the training `cameras` when None). A colour left underwater would carry the
     water twice once the model adds it. `b_inf` [3], when given (read off open water by `open_water_color`),
-    is kept; `dark_bins` and `dark_share` choose the backscatter samples (`dark_pixels`).
+    is kept; `dark_bins` and `dark_share` choose the backscatter samples (`dark_pixels`). `known` = (beta_D,
+    beta_B, B_inf) skips the fit: the colours are de-hazed with that medium (the true one of a synthetic scene).
     """
     points = points.float()
     idx, obs, ranges = observe_points(points, cameras, images)
@@ -132,7 +134,8 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
         raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
-    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, dark_bins, dark_share)
+    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, dark_bins, dark_share) \
+        if known is None else tuple(x.float() for x in known)
     seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed, local = torch.unique(idx, return_inverse=True)

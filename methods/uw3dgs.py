@@ -61,23 +61,35 @@ class UW3DGSModel(GaussianSplattingModel):
         # the estimate runs before the first training step, not here: a resumed run or a model rebuilt for
         # uw-eval gets its medium from the checkpoint and must not pay for a fit it throws away
         self._estimate_inputs = (scene, train_indices) if self.medium is not None and \
-            config.medium.init == "estimate" else None
+            config.medium.init in ("estimate", "truth") else None
+        if self._estimate_inputs is not None and config.medium.init == "truth" and \
+                (scene.gt is None or not scene.gt.medium):
+            raise ValueError("--model.medium.init truth needs a scene that knows its medium (gt/medium.json: the "
+                             "synthetic ones); use 'estimate' or 'prior'")
 
     def start_from_estimate(self) -> None:
-        """Medium from the initial points' colours across the training views; Gaussian colours de-hazed."""
+        """Medium from the initial points' colours across the training views (or the true one with init 'truth');
+        Gaussian colours de-hazed with it."""
         if self._estimate_inputs is None or self.medium is None:
             return
         (scene, train_indices), self._estimate_inputs = self._estimate_inputs, None
         mc = self.config.medium
         cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
-        water = None if mc.open_water_cells <= 0 else \
-            open_water_color(scene.points.float(), cameras, images, mc.open_water_cells, mc.open_water_min_share)
-        source = "fitted (no open water in view)" if water is None else \
-            f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
-        print(f"uw3dgs: medium estimate: B_inf {source}", file=sys.stderr)
+        known, water = None, None
+        if mc.init == "truth":
+            known = tuple(torch.tensor(scene.gt.medium[k], dtype=torch.float32) for k in ("beta_D", "beta_B", "B_inf"))
+            print("uw3dgs: medium: the true one (gt/medium.json), an oracle for analysis", file=sys.stderr)
+        else:
+            if mc.open_water_cells > 0:
+                water = open_water_color(scene.points.float(), cameras, images, mc.open_water_cells,
+                                         mc.open_water_min_share)
+            source = "fitted (no open water in view)" if water is None else \
+                f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
+            print(f"uw3dgs: medium estimate: B_inf {source}", file=sys.stderr)
         estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
                                    b_inf=water, dark_bins=mc.dark_bins, dark_share=mc.dark_share,
-                                   sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None)
+                                   sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None,
+                                   known=known)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)

@@ -240,3 +240,40 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     truth = torch.tensor(scene.gt.medium["beta_D"])
     assert ((expected.beta_d - truth).abs() < (prior - truth).abs()).all()
     torch.testing.assert_close(expected.b_inf, torch.tensor(scene.gt.medium["B_inf"]), atol=2 / 255, rtol=0)
+
+
+def test_truth_start_is_the_scene_medium_and_needs_one(make_config):
+    """`--model.medium.init truth` (synthetic scenes): the true medium, colours de-hazed with it; elsewhere an error."""
+    import dataclasses
+
+    import pytest
+
+    from uw3dgs.registry import METHODS
+    from uw3dgs.render.sh import rgb_to_sh
+
+    spec = METHODS["uw3dgs"].config
+    base = make_config(steps=1)
+    medium = dataclasses.replace(spec.model.medium, init="truth")
+    model_config = dataclasses.replace(spec.model, medium=medium, gaussians=base.model.gaussians)
+    scene, train = (dm := base.datamanager.setup(data=None)).scene, dm.train_indices
+    model = model_config.setup(scene=scene, train_indices=train)
+    model.start_from_estimate()
+    truth = [torch.tensor(scene.gt.medium[k]) for k in ("beta_D", "beta_B", "B_inf")]
+    points = torch.rand(200, 3) * (model.medium.box_max - model.medium.box_min) + model.medium.box_min
+    for learned, true in zip((*model.medium.betas(points), model.medium.b_inf.detach()), truth, strict=True):
+        torch.testing.assert_close(learned, true.expand_as(learned), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(model.medium.prior_d, truth[0])
+    cameras, images = [scene.cameras[i] for i in train], [scene.images[i] for i in train]
+    expected = estimate_medium(scene.points, scene.point_colors, cameras, images, scene.dataset_scale,
+                               sfm_cameras=scene.cameras, known=tuple(truth))
+    torch.testing.assert_close(model.gaussians.sh0[:, 0], rgb_to_sh(expected.clean_colors.clamp(0, 1)))
+    # de-hazed with the true medium, the points' colours are nearer their clean colours (mean of the clean images
+    # at their projections) than their underwater ones are
+    index, clean, _ = observe_points(scene.points.float(), cameras, [scene.gt.clean_images[i] for i in train])
+    seen = torch.unique(index)
+    total = torch.zeros(len(scene.points), 3).index_add_(0, index, clean)
+    mean_clean = (total / torch.bincount(index, minlength=len(scene.points)).clamp_min(1)[:, None])[seen]
+    dehazed_error = (expected.clean_colors[seen] - mean_clean).abs().mean()
+    assert dehazed_error < 0.5 * (scene.point_colors[seen].float() - mean_clean).abs().mean()
+    with pytest.raises(ValueError, match="init truth needs a scene that knows its medium"):
+        model_config.setup(scene=dataclasses.replace(scene, gt=None), train_indices=train)
