@@ -15,7 +15,8 @@ with the true medium (rendered range and coverage kept): (UWI - backscatter) / a
 removes a bias, the bias was the learned medium's, not the Gaussians'. `--true-range` does the same with
 the learned medium (re-read along each ray) at the true range of every pixel with a surface: what is
 left is the learned medium's error, what goes away was the rendered range's. Both together give back the
-clean image up to the render's own UWI error. Far bands amplify any error by exp(beta_D z) there.
+clean image up to the render's own UWI error. Far bands amplify any error by exp(beta_D z) there. Open water
+(no true surface) keeps the rendered URI in every variant.
 """
 
 from __future__ import annotations
@@ -75,7 +76,8 @@ def band_table(config_path: Path, edges: list[float], skip: set[str], use_true_m
                     if use_true_range else outputs["range"]
                 medium = true_medium(datamanager.scene.gt.medium) if use_true_medium \
                     else learned_medium_at(model, batch["camera"], at)
-                uri = dehaze(outputs, at, *medium, model.dataset_scale)
+                surface = batch["range"].isfinite()[..., None]  # open water has nothing to de-haze: URI as rendered
+                uri = torch.where(surface, dehaze(outputs, at, *medium, model.dataset_scale), uri)
         uri = uri.clamp(0, 1)
         errors.append((uri - batch["clean_image"]).reshape(-1, 3).double())
         true_ranges.append(batch["range"].reshape(-1))
