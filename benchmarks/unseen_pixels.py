@@ -2,7 +2,7 @@
 
     python benchmarks/unseen_pixels.py outputs/synthetic/3dgs/<timestamp>/config.yml \
                                        outputs/synthetic/uw3dgs/<timestamp>/config.yml
-    python benchmarks/unseen_pixels.py RUN/config.yml --large 2.0
+    python benchmarks/unseen_pixels.py RUN/config.yml --large 2.0 --step 2500   # a kept checkpoint
 
 Scenes with ground-truth ranges only (the synthetic ones). For every test view of each trained run it
 prints the share of pixels whose surface no training camera has in its field of view (`covisible_mask`),
@@ -36,8 +36,8 @@ def render_without(model, camera, off: torch.Tensor | None) -> dict:
         opacities.data.copy_(saved)
 
 
-def view_rows(config_path: Path, large: float) -> list[str]:
-    config, datamanager, model, _ = load_trained(config_path)
+def view_rows(config_path: Path, large: float, step: int | None = None) -> list[str]:
+    config, datamanager, model, _ = load_trained(config_path, step=step)
     is_large = model.gaussians.scales.detach().exp().max(dim=-1).values > large
     rows = []
     for batch in datamanager.test_batches():
@@ -63,12 +63,13 @@ def main() -> None:
     parser.add_argument("configs", nargs="+", type=Path, help="config.yml of trained runs")
     parser.add_argument("--large", type=float, default=2.0,
                         help="largest axis, in the run's world units, of a 'large' Gaussian")
+    parser.add_argument("--step", type=int, default=None, help="the checkpoint of this step (default: the latest)")
     args = parser.parse_args()
     print(f"| run | view | unseen share | alpha unseen | PSNR unseen | PSNR seen | PSNR | large off: alpha unseen | "
           f"PSNR unseen | PSNR seen | PSNR | large (> {args.large:g}) |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for path in args.configs:
-        print("\n".join(view_rows(path, args.large)))
+        print("\n".join(view_rows(path, args.large, args.step)))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import pytest
 import torch
 from conftest import tiny_train_config
 
+from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.registry import METHODS
 
@@ -97,3 +98,39 @@ def test_uri_error_bands_cover_every_pixel_and_dehazing_inverts_formation(uw3dgs
     dehazed = script.dehaze(outputs, outputs["range"], *script.true_medium(own), model.dataset_scale)
     covered = outputs["alpha"] > 0.5
     assert torch.allclose(dehazed[covered], outputs["uri"][covered], atol=1e-4)
+
+
+def test_uri_error_in_front_share_flags_gaussians_nearer_than_the_true_surface(uw3dgs_run):
+    script = load_script("uri_error")
+    model, dm = uw3dgs_run.model, uw3dgs_run.datamanager
+    batch = next(iter(dm.test_batches()))
+    camera, true_range = batch["camera"], batch["range"]
+    with torch.no_grad():
+        covered = model.get_outputs(camera)["alpha"] > 0.5
+        trained = script.in_front_share(model, camera, true_range, 0.05)[covered]
+        everything = script.in_front_share(model, camera, true_range, -1e6)[covered]  # any centre ahead counts
+        nothing = script.in_front_share(model, camera, true_range, 1.0)[covered]  # none nearer than 0 x range
+        # the same Gaussians pulled halfway to the camera (each stays on its own ray, so on its own pixel)
+        means = model.gaussians.means
+        original = means.detach().clone()
+        centre = camera.center.to(means.dtype)
+        means.copy_(centre + 0.5 * (original - centre))
+        pulled = script.in_front_share(model, camera, true_range, 0.05)[covered]
+        means.copy_(original)
+    assert bool(covered.any())
+    assert torch.allclose(everything, torch.ones_like(everything), atol=1e-5)
+    assert torch.allclose(nothing, torch.zeros_like(nothing), atol=1e-6)
+    # initialised on the seabed, 20 steps later the Gaussians still mostly sit on it; pulled in, all are in front
+    assert float(trained.mean()) < 0.3
+    assert float(pulled.mean()) > 0.95
+    rows = [cells(r) for r in script.band_table(uw3dgs_run.run_dir / "config.yml", [0, 3, 6], set())]
+    assert all(0.0 <= float(r[6].rstrip("%")) <= 100.0 for r in rows if r[6] != "-")
+
+
+def test_scripts_read_a_chosen_checkpoint_and_name_the_saved_steps_otherwise(uw3dgs_run):
+    config = uw3dgs_run.run_dir / "config.yml"
+    assert load_trained(config, step=20)[3].name == "step-000020.ckpt"
+    with pytest.raises(FileNotFoundError, match=r"no checkpoint of step 7 \(saved: 20\)"):
+        load_trained(config, step=7)
+    script = load_script("unseen_pixels")
+    assert script.view_rows(config, large=2.0, step=20) == script.view_rows(config, large=2.0)

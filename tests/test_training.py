@@ -116,6 +116,20 @@ def test_uw_eval_writes_nerfstudio_shaped_json(make_config):
     assert sorted(p.name for p in (trainer.run_dir / "eval" / "renders" / "covisible").iterdir()) == sorted(names)
 
 
+def test_uw_eval_of_an_earlier_checkpoint_goes_beside_the_final_evaluation(make_config):
+    trainer = train(make_config(steps=40, timestamp="ev-step"))  # checkpoints at 20 and 40
+    config = trainer.run_dir / "config.yml"
+    final = run_eval(EvalArgs(load_config=config, save_renders=False))
+    earlier = run_eval(EvalArgs(load_config=config, step=20))
+    assert final["checkpoint"].endswith("step-000040.ckpt") and earlier["checkpoint"].endswith("step-000020.ckpt")
+    assert Path(earlier["output_path"]) == trainer.run_dir / "eval" / "step-000020" / "results.json"
+    assert (trainer.run_dir / "eval" / "step-000020" / "renders" / "compare").is_dir()
+    assert json.loads((trainer.run_dir / "eval" / "results.json").read_text())["checkpoint"] == final["checkpoint"]
+    assert earlier["results"]["psnr"] != final["results"]["psnr"]  # 20 more steps of training changed the render
+    with pytest.raises(FileNotFoundError, match=r"no checkpoint of step 30 \(saved: 20, 40\)"):
+        run_eval(EvalArgs(load_config=config, step=30))
+
+
 @pytest.mark.parametrize("name", ["uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"])
 def test_uw3dgs_variants_train_and_report_their_metrics(make_config, name):
     from uw3dgs.registry import METHODS

@@ -23,6 +23,9 @@ class EvalArgs:
     """Where the test-view renders go (GT, render, depth, side by side); default <run>/eval/renders."""
     save_renders: bool = True
     """Write the renders as PNG."""
+    step: int | None = None
+    """Evaluate the checkpoint of this step (one the run kept: --steps-per-save, --keep-checkpoints) instead of
+    the latest; its metrics and renders then go to <run>/eval/step-<STEP>/ by default."""
     device: str = "auto"
 
 
@@ -31,17 +34,19 @@ def run_eval(args: EvalArgs) -> dict:
     from uw3dgs.engine.trainer import resolve_device
 
     device = resolve_device(args.device)
-    config, datamanager, model, checkpoint = load_trained(args.load_config, device)
+    config, datamanager, model, checkpoint = load_trained(args.load_config, device, step=args.step)
     if not datamanager.test_indices:
         raise ValueError(f"{args.load_config}: the run has no test views (--datamanager.llffhold 0)")
-    run_dir = Path(args.load_config).parent
-    renders = (args.render_output_path or run_dir / "eval" / "renders") if args.save_renders else None
+    eval_dir = Path(args.load_config).parent / "eval"
+    if args.step is not None:  # an earlier checkpoint never overwrites the final evaluation
+        eval_dir = eval_dir / f"step-{args.step:06d}"
+    renders = (args.render_output_path or eval_dir / "renders") if args.save_renders else None
     result = evaluate_views(model, datamanager, progress=True, save_dir=renders)
     summary = {**result["summary"], "num_gaussians": getattr(model, "num_gaussians", None),
                "num_test_views": len(datamanager.test_indices)}
     data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
             "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"]}
-    output = args.output_path or run_dir / "eval" / "results.json"
+    output = args.output_path or eval_dir / "results.json"
     write_json(output, data)
     data["output_path"] = str(output)
     return data

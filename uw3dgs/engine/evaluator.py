@@ -14,7 +14,7 @@ from rich.progress import track
 
 from uw3dgs.config import load_config
 from uw3dgs.data.datamanager import DataManager
-from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint
+from uw3dgs.engine.checkpoint import checkpoint_path, latest_checkpoint, list_checkpoints, load_checkpoint
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.models.base import Model
 from uw3dgs.utils.images import write_image
@@ -53,22 +53,27 @@ def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True
     return {"per_image": per_image, "summary": summary}
 
 
-def load_trained(config_path: Path, device: torch.device | str = "cpu") -> tuple[TrainConfig, DataManager, Model, Path]:
-    """Rebuild a run from its config.yml and latest checkpoint: (config, datamanager, model, checkpoint)."""
+def load_trained(config_path: Path, device: torch.device | str = "cpu",
+                 step: int | None = None) -> tuple[TrainConfig, DataManager, Model, Path]:
+    """Rebuild a run from its config.yml and its latest checkpoint (or the one of `step`):
+    (config, datamanager, model, checkpoint)."""
     config: TrainConfig = load_config(config_path)
     run_dir = Path(config_path).parent
-    checkpoint_path = latest_checkpoint(run_dir)
-    if checkpoint_path is None:
-        raise FileNotFoundError(f"{run_dir} holds no checkpoint (checkpoints/step-*.ckpt); train it first or "
-                                "pass another run's config.yml")
+    checkpoint = latest_checkpoint(run_dir) if step is None else checkpoint_path(run_dir, step)
+    if checkpoint is None or not checkpoint.is_file():
+        saved = ", ".join(str(int(p.stem.removeprefix("step-"))) for p in list_checkpoints(run_dir))
+        wanted = "no checkpoint" if step is None else f"no checkpoint of step {step} (saved: {saved or 'none'})"
+        raise FileNotFoundError(f"{run_dir} holds {wanted} (checkpoints/step-*.ckpt); train it first, pick a saved "
+                                "step, or pass another run's config.yml (--steps-per-save and --keep-checkpoints "
+                                "decide which steps a run keeps)")
     config = dataclasses.replace(config, progress=False)
     datamanager = config.datamanager.setup(data=config.data, downscale_factor=config.downscale_factor,
                                            device=device, seed=config.seed)
     model = config.model.setup(scene=datamanager.scene, train_indices=datamanager.train_indices)
-    state = load_checkpoint(checkpoint_path, "cpu")
+    state = load_checkpoint(checkpoint, "cpu")
     model.load_checkpoint_state(state["model"])
     model.to(device)
-    return config, datamanager, model, checkpoint_path
+    return config, datamanager, model, checkpoint
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
