@@ -364,6 +364,16 @@ def test_eval_sh_matches_direct_formula() -> None:
                 assert value[:, 0].abs().max() == 0
 
 
+def test_eval_sh_gradients_match_finite_differences() -> None:
+    generator = torch.Generator().manual_seed(3)
+    for degree in range(4):
+        dirs = torch.randn(4, 3, dtype=F64, generator=generator).requires_grad_()
+        sh = torch.randn(4, 16, 3, dtype=F64, generator=generator).requires_grad_()
+        # through the normalisation, as the Gaussians' colours take it (unit directions from free vectors)
+        assert torch.autograd.gradcheck(
+            lambda d, c, k=degree: eval_sh(k, c, torch.nn.functional.normalize(d, dim=-1)), (dirs, sh))
+
+
 def test_sh_degree_zero_round_trip() -> None:
     rgb = torch.rand(5, 3)
     torch.testing.assert_close(sh_to_rgb(rgb_to_sh(rgb)), rgb)

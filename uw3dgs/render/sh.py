@@ -7,6 +7,7 @@ and clamp are the caller's job.
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 C0 = 0.28209479177387814
@@ -67,10 +68,11 @@ def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
         raise ValueError(f"SH degree must be in [0, {MAX_DEGREE}], got {degree}")
     if sh.shape[-2] < num_sh_bases(degree):
         raise ValueError(f"degree {degree} needs {num_sh_bases(degree)} SH coefficients, got {sh.shape[-2]}")
-    result = 0.0
-    for i, value in enumerate(_basis(degree, dirs)):
-        result = result + value[..., None] * sh[..., i, :]
-    return result
+    # one [N, B] basis times the coefficients in a single product: taking the coefficients one basis at a
+    # time makes autograd build and add a full-size zero gradient per basis (16 at degree 3), which was the
+    # largest cost of a CPU training step at 90k Gaussians
+    basis = torch.stack(torch.broadcast_tensors(*_basis(degree, dirs)), dim=-1)
+    return (basis[..., None] * sh[..., : basis.shape[-1], :]).sum(-2)
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
