@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.registry import FieldSpec
-from uw3dgs.render.sh import eval_sh, rgb_to_sh
+from uw3dgs.render.sh import eval_sh_split, rgb_to_sh
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -76,8 +76,7 @@ class GaussianField(nn.Module):
     def colors(self, camera_center: Tensor) -> Tensor:
         """View-dependent RGB of every Gaussian seen from `camera_center`, [N, 3], >= 0."""
         dirs = torch.nn.functional.normalize(self.means - camera_center, dim=-1)
-        coeffs = torch.cat([self.sh0, self.shN], dim=1)
-        return (eval_sh(int(self.active_sh_degree), coeffs, dirs) + 0.5).clamp_min(0.0)
+        return (eval_sh_split(int(self.active_sh_degree), self.sh0[:, 0], self.shN, dirs) + 0.5).clamp_min(0.0)
 
     def activated(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(means, scales, unit quaternions, opacities) as the rasterizer takes them."""

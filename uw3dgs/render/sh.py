@@ -64,15 +64,27 @@ def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
     Only the first num_sh_bases(degree) coefficients are used, so a model can raise its active degree
     during training without reshaping its coefficients.
     """
+    return eval_sh_split(degree, sh[..., 0, :], sh[..., 1:, :], dirs)
+
+
+def eval_sh_split(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Tensor:
+    """`eval_sh` with the degree-0 coefficient [N, 3] apart from the others [N, B - 1, 3], as the Gaussians
+    store them: no per-step concatenation.
+
+    The higher bands are one batched product, basis [N, 1, B - 1] @ coefficients [N, B - 1, 3]. Written as
+    one term per basis function (3DGS's form), autograd builds and adds a full-size zero gradient per term:
+    that was the largest cost of a CPU training step at 90k Gaussians (benchmarks/sh_eval.py).
+    """
     if not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"SH degree must be in [0, {MAX_DEGREE}], got {degree}")
-    if sh.shape[-2] < num_sh_bases(degree):
-        raise ValueError(f"degree {degree} needs {num_sh_bases(degree)} SH coefficients, got {sh.shape[-2]}")
-    # one [N, B] basis times the coefficients in a single product: taking the coefficients one basis at a
-    # time makes autograd build and add a full-size zero gradient per basis (16 at degree 3), which was the
-    # largest cost of a CPU training step at 90k Gaussians
-    basis = torch.stack(torch.broadcast_tensors(*_basis(degree, dirs)), dim=-1)
-    return (basis[..., None] * sh[..., : basis.shape[-1], :]).sum(-2)
+    n = num_sh_bases(degree)
+    if rest.shape[-2] + 1 < n:
+        raise ValueError(f"degree {degree} needs {n} SH coefficients, got {rest.shape[-2] + 1}")
+    value = C0 * dc
+    if degree == 0:
+        return value
+    basis = torch.stack(_basis(degree, dirs)[1:], dim=-1)
+    return value + (basis.unsqueeze(-2) @ rest[..., : n - 1, :]).squeeze(-2)
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
