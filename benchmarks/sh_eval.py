@@ -45,8 +45,9 @@ def best_ms(fn: Callable[[], None], repeats: int) -> float:
     return min(times) * 1000
 
 
-def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], Callable[[], list[Tensor]]]:
-    """Forward + backward of max(eval + 0.5, 0) for n random Gaussians, as GaussianField.colors computes it."""
+def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
+    """Forward + backward of max(eval + 0.5, 0) for n random Gaussians, as GaussianField.colors computes it;
+    the list holds the last call's colours and gradients."""
     g = torch.Generator().manual_seed(seed)
     sh0 = torch.randn(n, 1, 3, generator=g).requires_grad_()
     sh_rest = (0.1 * torch.randn(n, 15, 3, generator=g)).requires_grad_()
@@ -62,7 +63,7 @@ def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], Ca
         (colours * weights).sum().backward()
         last[:] = [colours.detach(), sh0.grad, sh_rest.grad, means.grad]
 
-    return run, lambda: last
+    return run, last
 
 
 def training_step(config: Path, scratch: Path) -> Callable[[], None]:
@@ -107,7 +108,7 @@ def main() -> None:
     results = {}
     for name, evaluate in ways.items():
         run, outputs = colour_pass(evaluate, args.gaussians)
-        results[name] = (best_ms(run, args.repeats), [t.clone() for t in outputs()])
+        results[name] = (best_ms(run, args.repeats), [t.clone() for t in outputs])
     (base_ms, base_out), (ours_ms, ours_out) = results.values()
     worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
                 for a, b in zip(ours_out, base_out, strict=True))

@@ -43,11 +43,6 @@ def dehaze(outputs: dict, ranges: torch.Tensor, beta_d: torch.Tensor, beta_b: to
     return (outputs["rgb"] - water["backscatter"]) / water["attenuation"]
 
 
-def true_medium(medium: dict) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(beta_D, beta_B, B_inf) as [3] tensors from a scene's gt/medium.json (homogeneous)."""
-    return tuple(torch.tensor(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))
-
-
 def learned_medium_at(model, camera, ranges: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The model's (beta_D, beta_B) averaged along each pixel's ray to `ranges` [H, W], and its B_inf."""
     return *model.ray_betas(camera, ranges), model.medium.b_inf.detach()
@@ -99,18 +94,19 @@ def band_table(config_path: Path, edges: list[float], skip: set[str], use_true_m
             if use_true_medium or use_true_range:
                 at = torch.where(batch["range"].isfinite(), batch["range"], outputs["range"]) \
                     if use_true_range else outputs["range"]
-                medium = true_medium(datamanager.scene.gt.medium) if use_true_medium \
+                medium = datamanager.scene.gt.medium_tensors() if use_true_medium \
                     else learned_medium_at(model, batch["camera"], at)
                 surface = batch["range"].isfinite()[..., None]  # open water has nothing to de-haze: URI as rendered
                 uri = torch.where(surface, dehaze(outputs, at, *medium, model.dataset_scale), uri)
         uri = uri.clamp(0, 1)
         errors.append((uri - batch["clean_image"]).reshape(-1, 3).double())
         true_ranges.append(batch["range"].reshape(-1))
-        covered = (outputs["alpha"] > COVERED) & batch["range"].isfinite()
-        range_errors.append(torch.where(covered, outputs["range"] - batch["range"], torch.nan).reshape(-1).double())
+        covered = outputs["alpha"] > COVERED
+        hit = covered & batch["range"].isfinite()  # covered, with a true surface
+        range_errors.append(torch.where(hit, outputs["range"] - batch["range"], torch.nan).reshape(-1).double())
         with torch.no_grad():
             share = in_front_share(model, batch["camera"], batch["range"], front_margin)
-        front_shares.append(torch.where(outputs["alpha"] > COVERED, share, torch.nan).reshape(-1).double())
+        front_shares.append(torch.where(covered, share, torch.nan).reshape(-1).double())
     if not errors:
         raise SystemExit("--skip left no test view")
     error, z, range_error, front = torch.cat(errors), torch.cat(true_ranges), torch.cat(range_errors), \

@@ -77,7 +77,7 @@ class UW3DGSModel(GaussianSplattingModel):
         cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
         known, water = None, None
         if mc.init == "truth":
-            known = tuple(torch.tensor(scene.gt.medium[k], dtype=torch.float32) for k in ("beta_D", "beta_B", "B_inf"))
+            known = scene.gt.medium_tensors()
             print("uw3dgs: medium: the true one (gt/medium.json), an oracle for analysis", file=sys.stderr)
         else:
             if mc.open_water_cells > 0:

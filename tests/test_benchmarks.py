@@ -11,6 +11,7 @@ import pytest
 import torch
 from conftest import tiny_train_config
 
+from uw3dgs.data.scene import GroundTruth
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.registry import METHODS
@@ -95,7 +96,8 @@ def test_uri_error_bands_cover_every_pixel_and_dehazing_inverts_formation(uw3dgs
     with torch.no_grad():
         outputs = model.get_outputs(camera)
     own = {"beta_D": [0.4, 0.2, 0.1], "beta_B": [0.3, 0.25, 0.2], "B_inf": [0.05, 0.25, 0.35]}
-    dehazed = script.dehaze(outputs, outputs["range"], *script.true_medium(own), model.dataset_scale)
+    own_truth = GroundTruth(torch.empty(0), torch.empty(0), own)
+    dehazed = script.dehaze(outputs, outputs["range"], *own_truth.medium_tensors(), model.dataset_scale)
     covered = outputs["alpha"] > 0.5
     assert torch.allclose(dehazed[covered], outputs["uri"][covered], atol=1e-4)
 
@@ -134,3 +136,11 @@ def test_scripts_read_a_chosen_checkpoint_and_name_the_saved_steps_otherwise(uw3
         load_trained(config, step=7)
     script = load_script("unseen_pixels")
     assert script.view_rows(config, large=2.0, step=20) == script.view_rows(config, large=2.0)
+
+
+def test_uri_error_refuses_a_run_without_a_water_free_render(tmp_path, cache_dir, tiny_scene_config):
+    trainer = Trainer(tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=20, timestamp="plain"))
+    trainer.setup()
+    trainer.train()
+    with pytest.raises(SystemExit, match="renders no water-free image.*pass a uw3dgs run"):
+        load_script("uri_error").band_table(trainer.run_dir / "config.yml", [0, 3], set())

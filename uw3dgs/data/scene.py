@@ -21,6 +21,10 @@ class GroundTruth:
     medium: dict = field(default_factory=dict)
     """Contents of gt/medium.json (beta_D, beta_B, B_inf per channel, units)."""
 
+    def medium_tensors(self) -> tuple[Tensor, Tensor, Tensor]:
+        """(beta_D, beta_B, B_inf) of the homogeneous true medium, each [3] float32."""
+        return tuple(torch.tensor(self.medium[k], dtype=torch.float32) for k in ("beta_D", "beta_B", "B_inf"))
+
 
 @dataclass
 class SceneData:
