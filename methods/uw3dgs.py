@@ -200,9 +200,9 @@ class UW3DGSModel(GaussianSplattingModel):
                 out[f"{name}_{channel}"] = v
         if scene.gt is None or not learned:
             return out
-        truth_keys = {"b_inf": "B_inf", "beta_d": "beta_D", "beta_b": "beta_B"}
-        for name, key in truth_keys.items():
-            truth = torch.tensor(scene.gt.medium[key], dtype=torch.float32)
+        truths = dict(zip(("beta_d", "beta_b", "b_inf"), scene.gt.medium_tensors(), strict=True))
+        for name in ("b_inf", "beta_d", "beta_b"):
+            truth = truths[name]
             rel = ((learned[name].cpu() - truth).abs() / truth.abs().clamp_min(1e-6))
             out[f"{name}_rel_error"] = float(rel.max())
         return out
