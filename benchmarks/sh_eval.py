@@ -14,12 +14,11 @@ densification statistics) of that trained run's checkpoint is timed both ways to
 from __future__ import annotations
 
 import argparse
-import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from timing import best_ms, time_training_steps  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 import uw3dgs.fields.gaussians as gaussians_module
@@ -33,16 +32,6 @@ def eval_sh_per_term(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Ten
     for i, value in enumerate(_basis(degree, dirs)):
         result = result + value[..., None] * sh[..., i, :]
     return result
-
-
-def best_ms(fn: Callable[[], None], repeats: int) -> float:
-    fn()  # warm-up
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times) * 1000
 
 
 def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
@@ -64,36 +53,6 @@ def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], li
         last[:] = [colours.detach(), sh0.grad, sh_rest.grad, means.grad]
 
     return run, last
-
-
-def training_step(config: Path, scratch: Path) -> Callable[[], None]:
-    """One more training step of a trained run per call, resumed from a copy of its latest checkpoint in
-    `scratch` (the run itself is not touched)."""
-    import dataclasses
-    import shutil
-
-    from uw3dgs.config import load_config
-    from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, latest_checkpoint
-    from uw3dgs.engine.trainer import Trainer
-
-    saved = load_config(config)
-    checkpoint = latest_checkpoint(config.parent)
-    if checkpoint is None:
-        raise SystemExit(f"{config.parent} holds no checkpoint; train it first")
-    copy = scratch / "bench" / saved.method_name / "run" / CHECKPOINT_DIR
-    copy.mkdir(parents=True)
-    shutil.copy(checkpoint, copy / checkpoint.name)
-    trainer = Trainer(dataclasses.replace(saved, resume=True, progress=False, output_dir=scratch,
-                                          experiment_name="bench", timestamp="run"))
-    trainer.setup()
-    step = [trainer.start_step]
-
-    def run() -> None:
-        step[0] += 1
-        trainer.train_step(step[0])
-
-    print(f"training steps of {config} ({trainer.model.gaussians.num_gaussians} Gaussians):")
-    return run
 
 
 def main() -> None:
@@ -118,14 +77,12 @@ def main() -> None:
     print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
     if args.run is None:
         return
-    with tempfile.TemporaryDirectory() as scratch:
-        step = training_step(args.run, Path(scratch))
-        best = dict.fromkeys(ways, float("inf"))
-        for _ in range(2):  # alternate, so both ways see the same drift of the machine and of the model
-            for name, evaluate in ways.items():
-                gaussians_module.eval_sh_split = evaluate  # GaussianField.colors calls the module-level name
-                best[name] = min(best[name], best_ms(step, args.repeats))
-        gaussians_module.eval_sh_split = eval_sh_split
+
+    def use(evaluate):  # GaussianField.colors calls the module-level name
+        return lambda: setattr(gaussians_module, "eval_sh_split", evaluate)
+
+    best = time_training_steps(args.run, {name: use(evaluate) for name, evaluate in ways.items()}, args.repeats)
+    gaussians_module.eval_sh_split = eval_sh_split
     for name, ms in best.items():
         print(f"  {name:22s} {ms:8.1f} ms per step")
     print(f"  ratio {best['per term (3DGS)'] / best['one product (uw3dgs)']:.2f}x")

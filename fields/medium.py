@@ -84,7 +84,10 @@ class VMField(nn.Module):
         self.bias = nn.Parameter(softplus_inverse(torch.tensor(init, dtype=torch.float32)))
 
     def features(self, x: Tensor) -> Tensor:
-        """[N, 3] points in [-1, 1] -> [N, 3R] products of plane (bilinear) and line (linear) reads."""
+        """[N, 3] points in [-1, 1] -> [3R, N] products of plane (bilinear) and line (linear) reads.
+
+        Channel-major, as grid_sample returns them: transposing to [N, 3R] before the basis product made the
+        products and their backward strided, 1.5x slower fwd + bwd on CPU at 20k points."""
         feats = []
         for m, ((a, b), c) in enumerate(VM_MODES):
             # grid_sample's grid is (x, y) = (width index, height index): planes are [R, G(axis a), G(axis b)]
@@ -92,11 +95,11 @@ class VMField(nn.Module):
             plane = F.grid_sample(self.planes[m][None], plane_grid, align_corners=True).view(-1, x.shape[0])
             line_grid = torch.stack([torch.zeros_like(x[:, c]), x[:, c]], dim=-1).view(1, -1, 1, 2)
             line = F.grid_sample(self.lines[m][None, :, :, None], line_grid, align_corners=True).view(-1, x.shape[0])
-            feats.append((plane * line).T)
-        return torch.cat(feats, dim=-1)
+            feats.append(plane * line)
+        return torch.cat(feats, dim=0)
 
     def forward(self, x: Tensor) -> Tensor:
-        return F.softplus(self.features(x) @ self.basis.T + self.bias)
+        return F.softplus((self.basis @ self.features(x)).T + self.bias)
 
     def dense_features(self) -> Tensor:
         """The full [3R, G, G, G] feature grid the factors describe (for tests and inspection)."""

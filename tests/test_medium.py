@@ -64,11 +64,26 @@ def test_vm_field_equals_trilinear_read_of_its_dense_grid():
     dense = field.dense_features()  # [3R, X, Y, Z]
     # grid_sample 3D indexes (D, H, W) = (z, y, x) and takes grid coordinates as (x, y, z)
     volume = dense.permute(0, 3, 2, 1)[None]
-    expected = F.grid_sample(volume, x.view(1, -1, 1, 1, 3), align_corners=True).view(dense.shape[0], -1).T
+    expected = F.grid_sample(volume, x.view(1, -1, 1, 1, 3), align_corners=True).view(dense.shape[0], -1)
     torch.testing.assert_close(field.features(x), expected, rtol=1e-10, atol=1e-10)
     # corners hit grid nodes exactly
     corner = torch.tensor([[-1.0, -1.0, -1.0]], dtype=torch.float64)
-    torch.testing.assert_close(field.features(corner)[0], dense[:, 0, 0, 0])
+    torch.testing.assert_close(field.features(corner)[:, 0], dense[:, 0, 0, 0])
+
+
+def test_vm_field_gradients_against_finite_differences():
+    """Points (the ray samples depend on the rendered range) and every factor get exact gradients."""
+    torch.manual_seed(0)
+    field = VMField(resolution=5, components=2, init=(0.1, 0.2, 0.3), init_std=1.0).double()
+    torch.nn.init.normal_(field.basis)
+    x = (torch.rand(6, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_()
+    params = (field.planes, field.lines, field.basis, field.bias)
+
+    def fn(x, *values):
+        named = dict(zip(("planes", "lines", "basis", "bias"), values, strict=True))
+        return torch.func.functional_call(field, named, (x,))
+
+    assert torch.autograd.gradcheck(fn, (x, *params))
 
 
 def test_field_starts_flat_at_the_prior():

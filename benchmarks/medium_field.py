@@ -1,0 +1,103 @@
+"""The medium's VM fields read at every pixel: channel-major features (uw3dgs) against the row-major form.
+
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/medium_field.py
+    python benchmarks/medium_field.py --points 19608 --run outputs/IUI3-RedSea/uw3dgs/<timestamp>/config.yml
+
+Times forward + backward of beta_D and beta_B at P ray midpoints (`MediumGrid.ray_betas` with S = 1, the
+range differentiable as in training; 19,608 = the 172x114 pixels of IUI3-RedSea at --downscale-factor 8),
+one thread, best of `--repeats`, both ways, and checks they agree. The row-major form, [N, 3R] features
+times the basis (how uw3dgs did it until this benchmark), makes the plane x line products and their
+backward work on transposed, strided data. With `--run`, whole training steps of that run are timed both ways.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from timing import best_ms, time_training_steps  # benchmarks/timing.py, next to this script
+from torch import Tensor
+
+from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
+
+CHANNEL_MAJOR = VMField.forward
+
+
+def forward_row_major(field: VMField, x: Tensor) -> Tensor:
+    """The baseline, as uw3dgs computed it before: each mode's products transposed to [N, R] and concatenated
+    into [N, 3R] features, then times the basis."""
+    feats = []
+    for m, ((a, b), c) in enumerate(VM_MODES):
+        plane_grid = torch.stack([x[:, b], x[:, a]], dim=-1).view(1, -1, 1, 2)
+        plane = F.grid_sample(field.planes[m][None], plane_grid, align_corners=True).view(-1, x.shape[0])
+        line_grid = torch.stack([torch.zeros_like(x[:, c]), x[:, c]], dim=-1).view(1, -1, 1, 2)
+        line = F.grid_sample(field.lines[m][None, :, :, None], line_grid, align_corners=True).view(-1, x.shape[0])
+        feats.append((plane * line).T)
+    return F.softplus(torch.cat(feats, dim=-1) @ field.basis.T + field.bias)
+
+
+def field_pass(points: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
+    """Forward + backward of both fields at `points` ray midpoints of a random, non-flat medium; the list holds
+    the last call's betas and gradients (ranges and every factor)."""
+    g = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3))
+    with torch.no_grad():
+        for field in (medium.beta_d, medium.beta_b):
+            field.basis.normal_(generator=g)
+    dirs = F.normalize(torch.randn(points, 3, generator=g), dim=-1)
+    ranges = torch.rand(points, generator=g).requires_grad_()
+    weights = torch.rand(points, 6, generator=g)
+    last: list[Tensor] = []
+
+    def run() -> None:
+        medium.zero_grad()
+        ranges.grad = None
+        beta_d, beta_b = medium.ray_betas(torch.zeros(3), dirs, ranges)
+        (torch.cat([beta_d, beta_b], dim=-1) * weights).sum().backward()
+        last[:] = [beta_d.detach(), beta_b.detach(), ranges.grad,
+                   *(p.grad for p in medium.parameters() if p.grad is not None)]
+
+    return run, last
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--points", type=int, default=19_608)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--run", type=Path, default=None, help="config.yml of a trained uw3dgs run: time whole steps")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    ways = {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR}
+    results = {}
+    for name, forward in ways.items():
+        VMField.forward = forward
+        run, outputs = field_pass(args.points)
+        results[name] = (best_ms(run, args.repeats), [t.clone() for t in outputs])
+    VMField.forward = CHANNEL_MAJOR
+    (base_ms, base_out), (ours_ms, ours_out) = results.values()
+    worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
+                for a, b in zip(ours_out, base_out, strict=True))
+    print(f"beta_D and beta_B at {args.points} points, forward + backward, R = 16, G = 64, 1 thread:")
+    for name, (ms, _) in results.items():
+        print(f"  {name:24s} {ms:8.1f} ms")
+    print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
+    if args.run is None:
+        return
+
+    def use(forward):
+        return lambda: setattr(VMField, "forward", forward)
+
+    best = time_training_steps(args.run, {name: use(forward) for name, forward in ways.items()}, args.repeats)
+    VMField.forward = CHANNEL_MAJOR
+    for name, ms in best.items():
+        print(f"  {name:24s} {ms:8.1f} ms per step")
+    print(f"  ratio {best['row-major (before)'] / best['channel-major (uw3dgs)']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

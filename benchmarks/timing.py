@@ -1,0 +1,62 @@
+"""Timing helpers shared by the benchmark scripts: best-of-N wall time, and whole training steps of a
+trained run timed with alternative implementations swapped in."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+
+def best_ms(fn: Callable[[], None], repeats: int) -> float:
+    """Best wall time of `repeats` calls after one warm-up call, in milliseconds."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times) * 1000
+
+
+def training_step(config: Path, scratch: Path) -> Callable[[], None]:
+    """One more training step of a trained run per call, resumed from a copy of its latest checkpoint in
+    `scratch` (the run itself is not touched)."""
+    from uw3dgs.config import load_config
+    from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, latest_checkpoint
+    from uw3dgs.engine.trainer import Trainer
+
+    saved = load_config(config)
+    checkpoint = latest_checkpoint(config.parent)
+    if checkpoint is None:
+        raise SystemExit(f"{config.parent} holds no checkpoint; train it first")
+    copy = scratch / "bench" / saved.method_name / "run" / CHECKPOINT_DIR
+    copy.mkdir(parents=True)
+    shutil.copy(checkpoint, copy / checkpoint.name)
+    trainer = Trainer(dataclasses.replace(saved, resume=True, progress=False, output_dir=scratch,
+                                          experiment_name="bench", timestamp="run"))
+    trainer.setup()
+    step = [trainer.start_step]
+
+    def run() -> None:
+        step[0] += 1
+        trainer.train_step(step[0])
+
+    print(f"training steps of {config} ({trainer.model.gaussians.num_gaussians} Gaussians):")
+    return run
+
+
+def time_training_steps(config: Path, ways: dict[str, Callable[[], None]], repeats: int) -> dict[str, float]:
+    """Best ms per training step of the run at `config` with each way switched on (each callable installs
+    its implementation); the ways alternate, so all see the same drift of the machine and of the model."""
+    best = dict.fromkeys(ways, float("inf"))
+    with tempfile.TemporaryDirectory() as scratch:
+        step = training_step(config, Path(scratch))
+        for _ in range(2):
+            for name, install in ways.items():
+                install()
+                best[name] = min(best[name], best_ms(step, repeats))
+    return best
