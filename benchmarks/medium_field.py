@@ -14,11 +14,12 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from timing import best_ms, time_training_steps  # benchmarks/timing.py, next to this script
+from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
@@ -73,30 +74,19 @@ def main() -> None:
     torch.set_num_threads(1)
 
     ways = {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR}
-    results = {}
-    for name, forward in ways.items():
-        VMField.forward = forward
-        run, outputs = field_pass(args.points)
-        results[name] = (best_ms(run, args.repeats), [t.clone() for t in outputs])
-    VMField.forward = CHANNEL_MAJOR
-    (base_ms, base_out), (ours_ms, ours_out) = results.values()
-    worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
-                for a, b in zip(ours_out, base_out, strict=True))
-    print(f"beta_D and beta_B at {args.points} points, forward + backward, R = 16, G = 64, 1 thread:")
-    for name, (ms, _) in results.items():
-        print(f"  {name:24s} {ms:8.1f} ms")
-    print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
-    if args.run is None:
-        return
 
     def use(forward):
-        return lambda: setattr(VMField, "forward", forward)
+        return lambda _trainer=None: setattr(VMField, "forward", forward)
 
-    best = time_training_steps(args.run, {name: use(forward) for name, forward in ways.items()}, args.repeats)
+    def field_pass_with(forward):
+        use(forward)()
+        return field_pass(args.points)
+
+    compare_passes(f"beta_D and beta_B at {args.points} points, forward + backward, R = 16, G = 64, 1 thread",
+                   {name: partial(field_pass_with, forward) for name, forward in ways.items()}, args.repeats)
+    if args.run is not None:
+        compare_training_steps(args.run, {name: use(forward) for name, forward in ways.items()}, args.repeats)
     VMField.forward = CHANNEL_MAJOR
-    for name, ms in best.items():
-        print(f"  {name:24s} {ms:8.1f} ms per step")
-    print(f"  ratio {best['row-major (before)'] / best['channel-major (uw3dgs)']:.2f}x")
 
 
 if __name__ == "__main__":

@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import torch
-from timing import best_ms, time_training_steps  # benchmarks/timing.py, next to this script
+from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 import uw3dgs.fields.gaussians as gaussians_module
@@ -64,28 +65,15 @@ def main() -> None:
     torch.set_num_threads(1)
 
     ways = {"per term (3DGS)": eval_sh_per_term, "one product (uw3dgs)": eval_sh_split}
-    results = {}
-    for name, evaluate in ways.items():
-        run, outputs = colour_pass(evaluate, args.gaussians)
-        results[name] = (best_ms(run, args.repeats), [t.clone() for t in outputs])
-    (base_ms, base_out), (ours_ms, ours_out) = results.values()
-    worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
-                for a, b in zip(ours_out, base_out, strict=True))
-    print(f"colours of {args.gaussians} Gaussians, forward + backward, degree 3, 1 thread:")
-    for name, (ms, _) in results.items():
-        print(f"  {name:22s} {ms:8.1f} ms")
-    print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
-    if args.run is None:
-        return
+    compare_passes(f"colours of {args.gaussians} Gaussians, forward + backward, degree 3, 1 thread",
+                   {name: partial(colour_pass, evaluate, args.gaussians) for name, evaluate in ways.items()},
+                   args.repeats)
+    if args.run is not None:
+        def use(evaluate):  # GaussianField.colors calls the module-level name
+            return lambda _trainer: setattr(gaussians_module, "eval_sh_split", evaluate)
 
-    def use(evaluate):  # GaussianField.colors calls the module-level name
-        return lambda: setattr(gaussians_module, "eval_sh_split", evaluate)
-
-    best = time_training_steps(args.run, {name: use(evaluate) for name, evaluate in ways.items()}, args.repeats)
-    gaussians_module.eval_sh_split = eval_sh_split
-    for name, ms in best.items():
-        print(f"  {name:22s} {ms:8.1f} ms per step")
-    print(f"  ratio {best['per term (3DGS)'] / best['one product (uw3dgs)']:.2f}x")
+        compare_training_steps(args.run, {name: use(evaluate) for name, evaluate in ways.items()}, args.repeats)
+        gaussians_module.eval_sh_split = eval_sh_split
 
 
 if __name__ == "__main__":

@@ -9,6 +9,9 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
+
+from torch import Tensor
 
 
 def best_ms(fn: Callable[[], None], repeats: int) -> float:
@@ -22,9 +25,9 @@ def best_ms(fn: Callable[[], None], repeats: int) -> float:
     return min(times) * 1000
 
 
-def training_step(config: Path, scratch: Path) -> Callable[[], None]:
+def training_step(config: Path, scratch: Path) -> tuple[Callable[[], None], Any]:
     """One more training step of a trained run per call, resumed from a copy of its latest checkpoint in
-    `scratch` (the run itself is not touched)."""
+    `scratch` (the run itself is not touched); and the Trainer that runs them."""
     from uw3dgs.config import load_config
     from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, latest_checkpoint
     from uw3dgs.engine.trainer import Trainer
@@ -46,17 +49,44 @@ def training_step(config: Path, scratch: Path) -> Callable[[], None]:
         trainer.train_step(step[0])
 
     print(f"training steps of {config} ({trainer.model.gaussians.num_gaussians} Gaussians):")
-    return run
+    return run, trainer
 
 
-def time_training_steps(config: Path, ways: dict[str, Callable[[], None]], repeats: int) -> dict[str, float]:
+def time_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], repeats: int) -> dict[str, float]:
     """Best ms per training step of the run at `config` with each way switched on (each callable installs
-    its implementation); the ways alternate, so all see the same drift of the machine and of the model."""
+    its implementation, given the Trainer); the ways alternate, so all see the same drift of the machine and
+    of the model."""
     best = dict.fromkeys(ways, float("inf"))
     with tempfile.TemporaryDirectory() as scratch:
-        step = training_step(config, Path(scratch))
+        step, trainer = training_step(config, Path(scratch))
         for _ in range(2):
             for name, install in ways.items():
-                install()
+                install(trainer)
                 best[name] = min(best[name], best_ms(step, repeats))
     return best
+
+
+def compare_passes(title: str, passes: dict[str, Callable[[], tuple[Callable[[], None], list[Tensor]]]],
+                   repeats: int) -> None:
+    """Time each way's pass (a factory returning the pass and the list its last call fills with outputs and
+    gradients), print them with the ratio of the first (the baseline) to the last, and how closely they agree."""
+    results = {}
+    for name, make in passes.items():
+        run, outputs = make()
+        results[name] = (best_ms(run, repeats), [t.clone() for t in outputs])
+    (base_ms, base_out), (ours_ms, ours_out) = results[next(iter(results))], results[list(results)[-1]]
+    worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-12))
+                for a, b in zip(ours_out, base_out, strict=True))
+    print(f"{title}:")
+    for name, (ms, _) in results.items():
+        print(f"  {name:26s} {ms:8.1f} ms")
+    print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
+
+
+def compare_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], repeats: int) -> None:
+    """Print `time_training_steps` and the ratio of the first way (the baseline) to the last."""
+    best = time_training_steps(config, ways, repeats)
+    for name, ms in best.items():
+        print(f"  {name:26s} {ms:8.1f} ms per step")
+    names = list(best)
+    print(f"  ratio {best[names[0]] / best[names[-1]]:.2f}x")

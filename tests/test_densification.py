@@ -45,6 +45,34 @@ def test_clone_split_prune_and_adam_state_follow():
         assert state["exp_avg"].shape == param.shape, name
         assert optimizers.optimizers[name].param_groups[0]["params"][0] is param
     assert densifier.grad_accum.shape == (5,) and float(densifier.grad_accum.sum()) == 0.0
+    # the (fused) Adam steps on with the carried moments
+    sum((getattr(field, n) ** 2).sum() for n in PARAM_NAMES).backward()
+    optimizers.step()
+    assert not torch.equal(field.means[:2], before["means"][[0, 3]])
+
+
+def test_adam_is_fused_gives_the_loops_update_and_stays_fused_when_loading_an_unfused_state():
+    def second_step(fused: bool):
+        field, optimizers, _ = make()  # built fused, one step taken
+        for opt in optimizers.optimizers.values():
+            assert all(group["fused"] for group in opt.param_groups)
+            for group in opt.param_groups:
+                group["fused"] = fused
+        sum((getattr(field, n) ** 2).sum() for n in PARAM_NAMES).backward()
+        optimizers.step()
+        return field, optimizers
+
+    fused_field, _ = second_step(True)
+    loop_field, loop_optimizers = second_step(False)
+    for name in PARAM_NAMES:
+        torch.testing.assert_close(getattr(fused_field, name), getattr(loop_field, name), rtol=1e-6, atol=1e-7)
+    # a checkpoint of the loop (runs from before the switch) loads into an Adam that stays fused and steps on
+    field, optimizers, _ = make()
+    optimizers.load_state_dict(loop_optimizers.state_dict())
+    for opt in optimizers.optimizers.values():
+        assert all(group["fused"] for group in opt.param_groups)
+    sum((getattr(field, n) ** 2).sum() for n in PARAM_NAMES).backward()
+    optimizers.step()
 
 
 def test_opacity_reset_happens_on_schedule_and_clears_moments():

@@ -1,0 +1,89 @@
+"""Adam's update of the Gaussians: PyTorch's fused kernel (uw3dgs) against its per-operation loop.
+
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/adam_fused.py
+    python benchmarks/adam_fused.py --gaussians 186000 --run outputs/IUI3-RedSea/uw3dgs/<timestamp>/config.yml
+
+Times one `Optimizers.step()` over a GaussianField's parameter groups (degree-3 SH: 59 floats per Gaussian,
+3DGS's learning rates, eps 1e-15), one thread, best of `--repeats`, both ways, after the same gradients, and
+checks the updated parameters agree. The loop (PyTorch's default on CPU) makes a pass over memory per
+operation (moments, bias corrections, sqrt, division); the fused kernel makes one. With `--run`, whole
+training steps of that run are timed both ways.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from functools import partial
+from pathlib import Path
+
+import torch
+from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
+from torch import Tensor
+
+import uw3dgs.engine.optimizers as optimizers_module
+from uw3dgs.engine.optimizers import Optimizers
+from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
+from uw3dgs.methods.gaussian_splatting import gaussian_optimizers
+
+FUSABLE = optimizers_module._fusable
+
+
+def never_fused(params: list) -> bool:
+    return False
+
+
+def adam_pass(n: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
+    """One optimizer step of n Gaussians from fixed parameters, moments and gradients per call; the list holds
+    the parameters after the last call."""
+    g = torch.Generator().manual_seed(seed)
+    field = GaussianField(GaussianFieldConfig(), torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g))
+    groups = field.param_groups()
+    optimizers = Optimizers(gaussian_optimizers(), groups, scene_extent=1.0, max_num_iterations=30_000)
+    params = [p for ps in groups.values() for p in ps]
+    start = [p.detach().clone() for p in params]
+    grads = [torch.randn(p.shape, generator=g) for p in params]
+    last: list[Tensor] = []
+
+    def run() -> None:
+        with torch.no_grad():
+            for p, value, grad in zip(params, start, grads, strict=True):
+                p.copy_(value)
+                p.grad = grad
+        optimizers.step()
+        last[:] = [p.detach() for p in params]
+
+    return run, last
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--gaussians", type=int, default=186_000)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--run", type=Path, default=None, help="config.yml of a trained run: time whole steps too")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    ways = {"per-operation loop": never_fused, "fused (uw3dgs)": FUSABLE}
+
+    def adam_pass_with(choice):
+        optimizers_module._fusable = choice  # Optimizers asks the module-level name when it builds its Adams
+        return adam_pass(args.gaussians)
+
+    def switch(fused: bool):  # a built Adam reads the flag at every step
+        def install(trainer) -> None:
+            for optimizer in trainer.optimizers.optimizers.values():
+                for group in optimizer.param_groups:
+                    group["fused"] = fused
+        return install
+
+    compare_passes(f"Adam step of {args.gaussians} Gaussians, 1 thread",
+                   {name: partial(adam_pass_with, choice) for name, choice in ways.items()}, args.repeats)
+    optimizers_module._fusable = FUSABLE
+    if args.run is not None:
+        compare_training_steps(args.run, {"per-operation loop": switch(False), "fused (uw3dgs)": switch(True)},
+                               args.repeats)
+
+
+if __name__ == "__main__":
+    main()
