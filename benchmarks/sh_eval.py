@@ -1,14 +1,16 @@
-"""Spherical-harmonics colours: one batched product over the basis (uw3dgs) against one term per basis function.
+"""Spherical-harmonics colours: one batched product with its own backward (uw3dgs) against one term per basis function.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/sh_eval.py
     python benchmarks/sh_eval.py --gaussians 90000 --run outputs/synthetic/uw3dgs/<timestamp>/config.yml
 
 Times forward + backward of the view-dependent colours of N Gaussians (degree 3, one thread, best of
-`--repeats`) both ways and checks they agree. The per-term sum over the concatenated coefficients,
-sh[:, 0] * Y_0 + sh[:, 1] * Y_1 + ..., is how 3DGS writes it and how uw3dgs did until this benchmark:
-under autograd every `sh[:, i]` gives a backward that allocates and accumulates a full [N, 16, 3]
-gradient, 16 times per step. With `--run`, a whole training step (render, losses, backward, Adam,
-densification statistics) of that trained run's checkpoint is timed both ways too.
+`--repeats`) three ways and checks the first and last agree. The per-term sum over the concatenated
+coefficients, sh[:, 0] * Y_0 + sh[:, 1] * Y_1 + ..., is how 3DGS writes it and how uw3dgs did until this
+benchmark: under autograd every `sh[:, i]` gives a backward that allocates and accumulates a full
+[N, 16, 3] gradient, 16 times per step. The middle way is one batched product with autograd's backward,
+whose coefficient gradient (an outer product per Gaussian) runs as a slow batched matmul; uw3dgs's own
+backward (`_BandProduct`) makes it a broadcast multiply. With `--run`, a whole training step (render,
+losses, backward, Adam, densification statistics) of that trained run's checkpoint is timed each way too.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from timing import compare_passes, compare_training_steps  # benchmarks/timing.p
 from torch import Tensor
 
 import uw3dgs.fields.gaussians as gaussians_module
-from uw3dgs.render.sh import _basis, eval_sh_split
+from uw3dgs.render.sh import C0, _basis, eval_sh_split, num_sh_bases
 
 
 def eval_sh_per_term(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Tensor:
@@ -33,6 +35,13 @@ def eval_sh_per_term(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Ten
     for i, value in enumerate(_basis(degree, dirs)):
         result = result + value[..., None] * sh[..., i, :]
     return result
+
+
+def eval_sh_autograd_product(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Tensor:
+    """One batched product with autograd's own backward (uw3dgs before `_BandProduct`): the coefficients'
+    gradient, an outer product per Gaussian, then runs as a batched matmul."""
+    basis = torch.stack(_basis(degree, dirs)[1:], dim=-1)
+    return C0 * dc + (basis.unsqueeze(-2) @ rest[..., : num_sh_bases(degree) - 1, :]).squeeze(-2)
 
 
 def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
@@ -64,7 +73,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
 
-    ways = {"per term (3DGS)": eval_sh_per_term, "one product (uw3dgs)": eval_sh_split}
+    ways = {"per term (3DGS)": eval_sh_per_term, "one product, autograd bwd": eval_sh_autograd_product,
+            "one product (uw3dgs)": eval_sh_split}
     compare_passes(f"colours of {args.gaussians} Gaussians, forward + backward, degree 3, 1 thread",
                    {name: partial(colour_pass, evaluate, args.gaussians) for name, evaluate in ways.items()},
                    args.repeats)
