@@ -1,13 +1,13 @@
 """Adam's update of the Gaussians: PyTorch's fused kernel (uw3dgs) against its per-operation loop.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/adam_fused.py
-    python benchmarks/adam_fused.py --gaussians 186000 --run outputs/IUI3-RedSea/uw3dgs/<timestamp>/config.yml
+    python benchmarks/adam_fused.py --gaussians 186000
 
 Times one `Optimizers.step()` over a GaussianField's parameter groups (degree-3 SH: 59 floats per Gaussian,
 3DGS's learning rates, eps 1e-15), one thread, best of `--repeats`, both ways, after the same gradients, and
 checks the updated parameters agree. The loop (PyTorch's default on CPU) makes a pass over memory per
-operation (moments, bias corrections, sqrt, division); the fused kernel makes one. With `--run`, whole
-training steps of that run are timed both ways.
+operation (moments, bias corrections, sqrt, division); the fused kernel makes one. Whole training steps:
+`benchmarks/training_step.py`.
 """
 
 from __future__ import annotations
@@ -15,10 +15,9 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 
 import torch
-from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
+from timing import compare_passes  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 import uw3dgs.engine.optimizers as optimizers_module
@@ -60,7 +59,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--gaussians", type=int, default=186_000)
     parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--run", type=Path, default=None, help="config.yml of a trained run: time whole steps too")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -70,19 +68,9 @@ def main() -> None:
         optimizers_module._fusable = choice  # Optimizers asks the module-level name when it builds its Adams
         return adam_pass(args.gaussians)
 
-    def switch(fused: bool):  # a built Adam reads the flag at every step
-        def install(trainer) -> None:
-            for optimizer in trainer.optimizers.optimizers.values():
-                for group in optimizer.param_groups:
-                    group["fused"] = fused
-        return install
-
     compare_passes(f"Adam step of {args.gaussians} Gaussians, 1 thread",
                    {name: partial(adam_pass_with, choice) for name, choice in ways.items()}, args.repeats)
     optimizers_module._fusable = FUSABLE
-    if args.run is not None:
-        compare_training_steps(args.run, {"per-operation loop": switch(False), "fused (uw3dgs)": switch(True)},
-                               args.repeats)
 
 
 if __name__ == "__main__":

@@ -1,13 +1,14 @@
 """The medium's VM fields read at every pixel: channel-major features (uw3dgs) against the row-major form.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/medium_field.py
-    python benchmarks/medium_field.py --points 19608 --run outputs/IUI3-RedSea/uw3dgs/<timestamp>/config.yml
+    python benchmarks/medium_field.py --points 19608
 
 Times forward + backward of beta_D and beta_B at P ray midpoints (`MediumGrid.ray_betas` with S = 1, the
 range differentiable as in training; 19,608 = the 172x114 pixels of IUI3-RedSea at --downscale-factor 8),
 one thread, best of `--repeats`, both ways, and checks they agree. The row-major form, [N, 3R] features
 times the basis (how uw3dgs did it until this benchmark), makes the plane x line products and their
-backward work on transposed, strided data. With `--run`, whole training steps of that run are timed both ways.
+backward work on transposed, strided data. Whole training steps:
+`benchmarks/training_step.py`.
 """
 
 from __future__ import annotations
@@ -15,11 +16,10 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
+from timing import compare_passes  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
@@ -69,23 +69,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--points", type=int, default=19_608)
     parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--run", type=Path, default=None, help="config.yml of a trained uw3dgs run: time whole steps")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
     ways = {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR}
 
-    def use(forward):
-        return lambda _trainer=None: setattr(VMField, "forward", forward)
-
     def field_pass_with(forward):
-        use(forward)()
+        VMField.forward = forward
         return field_pass(args.points)
 
     compare_passes(f"beta_D and beta_B at {args.points} points, forward + backward, R = 16, G = 64, 1 thread",
                    {name: partial(field_pass_with, forward) for name, forward in ways.items()}, args.repeats)
-    if args.run is not None:
-        compare_training_steps(args.run, {name: use(forward) for name, forward in ways.items()}, args.repeats)
     VMField.forward = CHANNEL_MAJOR
 
 

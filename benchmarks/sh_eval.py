@@ -1,7 +1,7 @@
 """Spherical-harmonics colours: one batched product with its own backward (uw3dgs) against one term per basis function.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/sh_eval.py
-    python benchmarks/sh_eval.py --gaussians 90000 --run outputs/synthetic/uw3dgs/<timestamp>/config.yml
+    python benchmarks/sh_eval.py --gaussians 90000
 
 Times forward + backward of the view-dependent colours of N Gaussians (degree 3, one thread, best of
 `--repeats`) three ways and checks the first and last agree. The per-term sum over the concatenated
@@ -9,8 +9,8 @@ coefficients, sh[:, 0] * Y_0 + sh[:, 1] * Y_1 + ..., is how 3DGS writes it and h
 benchmark: under autograd every `sh[:, i]` gives a backward that allocates and accumulates a full
 [N, 16, 3] gradient, 16 times per step. The middle way is one batched product with autograd's backward,
 whose coefficient gradient (an outer product per Gaussian) runs as a slow batched matmul; uw3dgs's own
-backward (`_BandProduct`) makes it a broadcast multiply. With `--run`, a whole training step (render,
-losses, backward, Adam, densification statistics) of that trained run's checkpoint is timed each way too.
+backward (`_BandProduct`) makes it a broadcast multiply. Whole training steps:
+`benchmarks/training_step.py`.
 """
 
 from __future__ import annotations
@@ -18,13 +18,11 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from functools import partial
-from pathlib import Path
 
 import torch
-from timing import compare_passes, compare_training_steps  # benchmarks/timing.py, next to this script
+from timing import compare_passes  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
-import uw3dgs.fields.gaussians as gaussians_module
 from uw3dgs.render.sh import C0, _basis, eval_sh_split, num_sh_bases
 
 
@@ -69,7 +67,6 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--gaussians", type=int, default=90_000)
     parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--run", type=Path, default=None, help="config.yml of a trained run: time whole steps too")
     args = parser.parse_args()
     torch.set_num_threads(1)
 
@@ -78,12 +75,6 @@ def main() -> None:
     compare_passes(f"colours of {args.gaussians} Gaussians, forward + backward, degree 3, 1 thread",
                    {name: partial(colour_pass, evaluate, args.gaussians) for name, evaluate in ways.items()},
                    args.repeats)
-    if args.run is not None:
-        def use(evaluate):  # GaussianField.colors calls the module-level name
-            return lambda _trainer: setattr(gaussians_module, "eval_sh_split", evaluate)
-
-        compare_training_steps(args.run, {name: use(evaluate) for name, evaluate in ways.items()}, args.repeats)
-        gaussians_module.eval_sh_split = eval_sh_split
 
 
 if __name__ == "__main__":

@@ -81,12 +81,3 @@ def compare_passes(title: str, passes: dict[str, Callable[[], tuple[Callable[[],
     for name, (ms, _) in results.items():
         print(f"  {name:26s} {ms:8.1f} ms")
     print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
-
-
-def compare_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], repeats: int) -> None:
-    """Print `time_training_steps` and the ratio of the first way (the baseline) to the last."""
-    best = time_training_steps(config, ways, repeats)
-    for name, ms in best.items():
-        print(f"  {name:26s} {ms:8.1f} ms per step")
-    names = list(best)
-    print(f"  ratio {best[names[0]] / best[names[-1]]:.2f}x")

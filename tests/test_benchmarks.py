@@ -20,6 +20,8 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def load_script(name: str):
+    if str(BENCHMARKS) not in sys.path:  # the speed scripts import their siblings (timing.py, ...), as python does
+        sys.path.insert(0, str(BENCHMARKS))
     spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
@@ -144,3 +146,33 @@ def test_uri_error_refuses_a_run_without_a_water_free_render(tmp_path, cache_dir
     trainer.train()
     with pytest.raises(SystemExit, match="renders no water-free image.*pass a uw3dgs run"):
         load_script("uri_error").band_table(trainer.run_dir / "config.yml", [0, 3], set())
+
+
+@pytest.fixture
+def keep_threads():
+    """The speed scripts time one thread (torch.set_num_threads(1)); the rest of the suite keeps its threads."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.mark.parametrize(("name", "size"), [("sh_eval", "--gaussians"), ("medium_field", "--points"),
+                                            ("adam_fused", "--gaussians")])
+def test_speed_scripts_compare_implementations_that_agree(name, size, monkeypatch, capsys, keep_threads):
+    monkeypatch.setattr(sys, "argv", [name, size, "300", "--repeats", "1"])
+    load_script(name).main()
+    agreement = float(capsys.readouterr().out.rsplit("agree to ", 1)[1].split()[0])
+    assert agreement < 1e-5
+
+
+def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3dgs_run, monkeypatch, capsys,
+                                                                              keep_threads):
+    import uw3dgs.fields.gaussians as gaussians_module
+    from uw3dgs.fields.medium import VMField
+
+    sh, medium = gaussians_module.eval_sh_split, VMField.forward
+    monkeypatch.setattr(sys, "argv", ["training_step", str(uw3dgs_run.run_dir / "config.yml"), "--repeats", "1"])
+    load_script("training_step").main()
+    rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
+    assert len(rows) == 6 and rows[0].split()[0] == "now"
+    assert gaussians_module.eval_sh_split is sh and VMField.forward is medium

@@ -1,0 +1,66 @@
+"""Whole training steps of a trained run with each CPU speed change of a training step undone, one at a time.
+
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive \\
+      python benchmarks/training_step.py RUN/config.yml
+
+Resumes a copy of the run's latest checkpoint (the run itself is not touched) and times one more training
+step (render, losses, backward, Adam, densification statistics), one thread, best of `--repeats`: as uw3dgs
+does it now, and with one change undone at a time, then with all undone (the code before them). The ways
+alternate twice, so all see the same drift of the machine and of the model. The changes and their
+microbenchmarks: spherical-harmonics colours as one product with its own backward (`sh_eval.py`), the
+medium's VM fields channel-major (`medium_field.py`, uw3dgs runs only), Adam fused (`adam_fused.py`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from medium_field import CHANNEL_MAJOR, forward_row_major  # the sibling benchmark scripts, next to this one
+from sh_eval import eval_sh_autograd_product, eval_sh_per_term
+from timing import time_training_steps
+
+import uw3dgs.fields.gaussians as gaussians_module
+from uw3dgs.fields.medium import VMField
+from uw3dgs.render.sh import eval_sh_split
+
+
+def installer(sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR, fused: bool = True
+              ) -> Callable[[Any], None]:
+    """Switch the running trainer to these implementations (a built Adam reads its flag at every step)."""
+
+    def install(trainer) -> None:
+        gaussians_module.eval_sh_split = sh  # GaussianField.colors calls the module-level name
+        VMField.forward = medium
+        for optimizer in trainer.optimizers.optimizers.values():
+            for group in optimizer.param_groups:
+                group["fused"] = fused
+
+    return install
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("config", type=Path, help="config.yml of a trained run (with a checkpoint)")
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    ways = {
+        "now": installer(),
+        "SH: autograd's backward": installer(sh=eval_sh_autograd_product),
+        "SH: one term per function": installer(sh=eval_sh_per_term),
+        "medium fields row-major": installer(medium=forward_row_major),
+        "Adam per-operation loop": installer(fused=False),
+        "all undone (per-term SH)": installer(sh=eval_sh_per_term, medium=forward_row_major, fused=False),
+    }
+    best = time_training_steps(args.config, ways, args.repeats)
+    gaussians_module.eval_sh_split, VMField.forward = eval_sh_split, CHANNEL_MAJOR
+    for name, ms in best.items():
+        print(f"  {name:28s} {ms:8.1f} ms per step   {ms / best['now']:.2f}x the time of now")
+
+
+if __name__ == "__main__":
+    main()
