@@ -12,12 +12,10 @@ operation (moments, bias corrections, sqrt, division); the fused kernel makes on
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable
-from functools import partial
 
 import torch
-from timing import compare_passes  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 import uw3dgs.engine.optimizers as optimizers_module
@@ -55,22 +53,14 @@ def adam_pass(n: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
     return run, last
 
 
+def adam_pass_with(choice: Callable[[list], bool], n: int) -> tuple[Callable[[], None], list[Tensor]]:
+    optimizers_module._fusable = choice  # Optimizers asks the module-level name when it builds its Adams
+    return adam_pass(n)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--gaussians", type=int, default=186_000)
-    parser.add_argument("--repeats", type=int, default=7)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-
-    ways = {"per-operation loop": never_fused, "fused (uw3dgs)": FUSABLE}
-
-    def adam_pass_with(choice):
-        optimizers_module._fusable = choice  # Optimizers asks the module-level name when it builds its Adams
-        return adam_pass(args.gaussians)
-
-    compare_passes(f"Adam step of {args.gaussians} Gaussians, 1 thread",
-                   {name: partial(adam_pass_with, choice) for name, choice in ways.items()}, args.repeats)
-    optimizers_module._fusable = FUSABLE
+    compare_cli(__doc__, "--gaussians", 186_000, "Adam step of {n} Gaussians, 1 thread",
+                {"per-operation loop": never_fused, "fused (uw3dgs)": FUSABLE}, adam_pass_with)
 
 
 if __name__ == "__main__":

@@ -13,13 +13,11 @@ backward work on transposed, strided data. Whole training steps:
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable
-from functools import partial
 
 import torch
 import torch.nn.functional as F
-from timing import compare_passes  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
@@ -65,22 +63,15 @@ def field_pass(points: int, seed: int = 0) -> tuple[Callable[[], None], list[Ten
     return run, last
 
 
+def field_pass_with(forward: Callable, n: int) -> tuple[Callable[[], None], list[Tensor]]:
+    VMField.forward = forward
+    return field_pass(n)
+
+
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--points", type=int, default=19_608)
-    parser.add_argument("--repeats", type=int, default=7)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-
-    ways = {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR}
-
-    def field_pass_with(forward):
-        VMField.forward = forward
-        return field_pass(args.points)
-
-    compare_passes(f"beta_D and beta_B at {args.points} points, forward + backward, R = 16, G = 64, 1 thread",
-                   {name: partial(field_pass_with, forward) for name, forward in ways.items()}, args.repeats)
-    VMField.forward = CHANNEL_MAJOR
+    compare_cli(__doc__, "--points", 19_608, "beta_D and beta_B at {n} points, forward + backward, R = 16, G = 64, "
+                "1 thread", {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR},
+                field_pass_with)
 
 
 if __name__ == "__main__":

@@ -15,12 +15,10 @@ backward (`_BandProduct`) makes it a broadcast multiply. Whole training steps:
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Callable
-from functools import partial
 
 import torch
-from timing import compare_passes  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.render.sh import C0, _basis, eval_sh_split, num_sh_bases
@@ -64,17 +62,9 @@ def colour_pass(evaluate, n: int, seed: int = 0) -> tuple[Callable[[], None], li
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--gaussians", type=int, default=90_000)
-    parser.add_argument("--repeats", type=int, default=7)
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-
-    ways = {"per term (3DGS)": eval_sh_per_term, "one product, autograd bwd": eval_sh_autograd_product,
-            "one product (uw3dgs)": eval_sh_split}
-    compare_passes(f"colours of {args.gaussians} Gaussians, forward + backward, degree 3, 1 thread",
-                   {name: partial(colour_pass, evaluate, args.gaussians) for name, evaluate in ways.items()},
-                   args.repeats)
+    compare_cli(__doc__, "--gaussians", 90_000, "colours of {n} Gaussians, forward + backward, degree 3, 1 thread",
+                {"per term (3DGS)": eval_sh_per_term, "one product, autograd bwd": eval_sh_autograd_product,
+                 "one product (uw3dgs)": eval_sh_split}, colour_pass)
 
 
 if __name__ == "__main__":

@@ -3,14 +3,17 @@ trained run timed with alternative implementations swapped in."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import shutil
 import tempfile
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch import Tensor
 
 
@@ -81,3 +84,18 @@ def compare_passes(title: str, passes: dict[str, Callable[[], tuple[Callable[[],
     for name, (ms, _) in results.items():
         print(f"  {name:26s} {ms:8.1f} ms")
     print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
+
+
+def compare_cli(doc: str, size_option: str, default_size: int, title: str, ways: dict[str, Any],
+                make_pass: Callable[[Any, int], tuple[Callable[[], None], list[Tensor]]]) -> None:
+    """The command line of a microbenchmark: `size_option` (N) and --repeats, one thread, then `compare_passes`
+    over `make_pass(way, N)` for each way; the last way (the current code) is the one left installed.
+    `title` may use {n}."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
+    parser.add_argument(size_option, type=int, default=default_size)
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    n = getattr(args, size_option.lstrip("-").replace("-", "_"))
+    compare_passes(title.format(n=n), {name: partial(make_pass, way, n) for name, way in ways.items()},
+                   args.repeats)
