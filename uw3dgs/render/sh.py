@@ -91,8 +91,8 @@ class _BandProduct(torch.autograd.Function):
     """basis [N, K] x coefficients [N, K, 3] -> [N, 3], one batched product per Gaussian.
 
     Autograd's own backward of that product forms the coefficients' gradient, an outer product per Gaussian,
-    as a batched matmul of [K, 1] by [1, 3]: 2.7x slower on CPU than the broadcast multiply used here, with
-    bitwise the same values (each entry is one product either way)."""
+    as a batched matmul of [K, 1] by [1, 3], much slower on CPU than the broadcast multiply used here, with
+    bitwise the same values (each entry is one product either way): colours 1.3x faster, benchmarks/sh_eval.py."""
 
     @staticmethod
     def forward(ctx, basis: Tensor, coeffs: Tensor) -> Tensor:
