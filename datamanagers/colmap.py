@@ -15,41 +15,43 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from uw3dgs.config import Target, target
 from uw3dgs.data.colmap_dataset import normalize_scene, read_colmap_dataset
-from uw3dgs.data.datamanager import DataManager, DataManagerConfig
+from uw3dgs.data.datamanager import DataManagerConfig
+from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.scene import SceneData
 from uw3dgs.registry import DataManagerSpec
 
 
+class ColmapDataParser(DataParser):
+    """ROOT/images/ + ROOT/sparse/0/ through `read_colmap_dataset`: undistorted, and downscaled one image at a
+    time while reading (through the image cache), then normalised unless --datamanager.no-normalize."""
+
+    config: ColmapDataManagerConfig
+
+    def parse(self, data: Path | None, downscale_factor: int) -> SceneData:
+        if data is None:
+            raise ValueError("the colmap datamanager needs --data: a folder with images/ and sparse/0/ "
+                             "(see docs/datasets.md)")
+        root = Path(data)
+        scene = read_colmap_dataset(root, root / "images", root / "sparse" / "0", self.config.cache_dir,
+                                    downscale_factor)
+        return normalize_scene(scene) if self.config.normalize else scene
+
+
 @dataclass(frozen=True)
 class ColmapDataManagerConfig(DataManagerConfig):
-    _target: Target = target(lambda: ColmapDataManager)
     normalize: bool = True
     """Centre on the mean camera centre and scale so the median camera-to-point distance is 1 (recorded in
     the run's dataparser_transforms.json; near/far follow)."""
     cache_dir: Path | None = None
     """Where undistorted / downscaled images are cached; default $UW3DGS_CACHE or ~/.cache/uw3dgs."""
+    parser: ClassVar[type[DataParser]] = ColmapDataParser
     generic: ClassVar[bool] = True
 
     @classmethod
     def can_read(cls, path: Path) -> bool:
         """images/ and sparse/0/."""
         return (path / "images").is_dir() and (path / "sparse" / "0").is_dir()
-
-
-class ColmapDataManager(DataManager):
-    config: ColmapDataManagerConfig
-    downscales_on_load = True
-
-    def load_scene(self, data: Path | None) -> SceneData:
-        if data is None:
-            raise ValueError("the colmap datamanager needs --data: a folder with images/ and sparse/0/ "
-                             "(see docs/datasets.md)")
-        root = Path(data)
-        scene = read_colmap_dataset(root, root / "images", root / "sparse" / "0", self.config.cache_dir,
-                                    self.downscale_factor)
-        return normalize_scene(scene) if self.config.normalize else scene
 
 
 datamanager = DataManagerSpec(

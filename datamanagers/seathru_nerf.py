@@ -14,18 +14,33 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
-from uw3dgs.config import Target, target
 from uw3dgs.data.colmap_dataset import normalize_scene
-from uw3dgs.data.datamanager import DataManager, DataManagerConfig
+from uw3dgs.data.datamanager import DataManagerConfig
+from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.seathru_layout import IMAGE_DIRS, PoseSource, read_seathru_scene
 from uw3dgs.registry import DataManagerSpec
 
 
+class SeathruNerfDataParser(DataParser):
+    """A SeaThru-NeRF scene folder through `read_seathru_scene`: pose source chosen, undistorted, and downscaled
+    one image at a time while reading (through the image cache), then normalised unless
+    --datamanager.no-normalize."""
+
+    config: SeathruNerfDataManagerConfig
+
+    def parse(self, data: Path | None, downscale_factor: int) -> SceneData:
+        if data is None:
+            raise ValueError("the seathru-nerf datamanager needs --data: a scene folder with Images_wb/ and "
+                             "sparse/0/ or poses_bounds.npy (see docs/datasets.md)")
+        scene = read_seathru_scene(Path(data), self.config.poses, self.config.cache_dir, downscale_factor)
+        return normalize_scene(scene) if self.config.normalize else scene
+
+
 @dataclass(frozen=True)
 class SeathruNerfDataManagerConfig(DataManagerConfig):
-    _target: Target = target(lambda: SeathruNerfDataManager)
     poses: PoseSource = "auto"
     """Pose source: 'colmap' (sparse/0), 'llff' (poses_bounds.npy), or 'auto': the one present; with both,
     COLMAP's if they agree, else the one the coloured SfM points fit clearly better (with a warning)."""
@@ -34,6 +49,7 @@ class SeathruNerfDataManagerConfig(DataManagerConfig):
     the run's dataparser_transforms.json; near/far follow)."""
     cache_dir: Path | None = None
     """Where undistorted / downscaled images are cached; default $UW3DGS_CACHE or ~/.cache/uw3dgs."""
+    parser: ClassVar[type[DataParser]] = SeathruNerfDataParser
 
     @classmethod
     def can_read(cls, path: Path) -> bool:
@@ -41,18 +57,6 @@ class SeathruNerfDataManagerConfig(DataManagerConfig):
         has_images = any((path / name).is_dir() for name in IMAGE_DIRS)
         has_poses = (path / "sparse" / "0").is_dir() or (path / "poses_bounds.npy").is_file()
         return has_images and has_poses and not (path / "gt" / "medium.json").is_file()
-
-
-class SeathruNerfDataManager(DataManager):
-    config: SeathruNerfDataManagerConfig
-    downscales_on_load = True
-
-    def load_scene(self, data: Path | None) -> SceneData:
-        if data is None:
-            raise ValueError("the seathru-nerf datamanager needs --data: a scene folder with Images_wb/ and "
-                             "sparse/0/ or poses_bounds.npy (see docs/datasets.md)")
-        scene = read_seathru_scene(Path(data), self.config.poses, self.config.cache_dir, self.downscale_factor)
-        return normalize_scene(scene) if self.config.normalize else scene
 
 
 datamanager = DataManagerSpec(

@@ -1,11 +1,14 @@
 """The seathru-nerf and colmap datamanagers: the real IUI3-RedSea scene (split, undistortion, pose source,
-image cache, normalisation, a short training run) and small generated COLMAP datasets for every bad input."""
+image cache, normalisation, a short training run), small generated COLMAP datasets for every bad input, the
+one DataManager (downscale factor checks) and a third-party data plugin."""
 
 from __future__ import annotations
 
 import dataclasses
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 import pycolmap
@@ -13,6 +16,7 @@ import pytest
 import torch
 from PIL import Image
 
+from uw3dgs.cameras import Camera
 from uw3dgs.cli.train import entrypoint as uw_train
 from uw3dgs.data import colmap_dataset
 from uw3dgs.data.colmap_dataset import (
@@ -21,14 +25,21 @@ from uw3dgs.data.colmap_dataset import (
     normalize_scene,
     plan_views,
     read_colmap_dataset,
+    read_colmap_model,
     undistortion_map,
 )
-from uw3dgs.data.datamanager import AutoDataManagerConfig
-from uw3dgs.data.seathru_layout import point_color_errors, read_poses_bounds, read_seathru_scene
+from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManager, DataManagerConfig
+from uw3dgs.data.dataparser import DataParser
+from uw3dgs.data.downscale import downscale_scene
+from uw3dgs.data.scene import SceneData
+from uw3dgs.data.seathru_layout import compare_poses, point_color_errors, read_poses_bounds, read_seathru_scene
 from uw3dgs.datamanagers.colmap import ColmapDataManagerConfig
-from uw3dgs.datamanagers.seathru_nerf import SeathruNerfDataManager, SeathruNerfDataManagerConfig
+from uw3dgs.datamanagers.seathru_nerf import SeathruNerfDataManagerConfig, SeathruNerfDataParser
+from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
+from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
+from uw3dgs.registry import DATAMANAGERS, DataManagerSpec
 from uw3dgs.utils.images import ImageReadError
 
 REAL_SCENE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "seathru-nerf" / "IUI3-RedSea"
@@ -65,7 +76,7 @@ def test_real_scene_is_recognised_and_split_25_4(real_datamanager):
     assert names == sorted(p.name for p in (REAL_SCENE / "Images_wb").iterdir())
     assert (len(dm.train_indices), len(dm.test_indices)) == (25, 4)
     assert [names[i] for i in dm.test_indices] == ["MTN_5894.png", "MTN_5903.png", "MTN_5911.png", "MTN_5928.png"]
-    # undistorted 1383x917 (COLMAP's no-blank-pixel camera), area-downscaled once, not again by the base class
+    # undistorted 1383x917 (COLMAP's no-blank-pixel camera), area-downscaled once, image by image while read
     assert dm.scene.images.shape == (29, 917 // FACTOR, 1383 // FACTOR, 3)
     cam = dm.scene.cameras[0]
     assert (cam.width, cam.height) == (1383 // FACTOR, 917 // FACTOR)
@@ -115,28 +126,70 @@ def test_undistorted_pixels_match_colmap(real_raw):
     assert diff.max() <= 0.51 and diff.mean() < 0.3
 
 
-@needs_real
-def test_chosen_poses_fit_the_images_and_beat_images_bin(real_raw, real_cache, capsys):
-    """'auto' detects that images.bin holds transposed rotations and uses poses_bounds.npy: coloured SfM
-    points then land on pixels of their colour, far below chance and below images.bin's poses, every view."""
-    llff = read_poses_bounds(REAL_SCENE / "poses_bounds.npy", 29, "test")
-    chosen = np.stack([c.viewmat.double().numpy() for c in real_raw.cameras])
-    np.testing.assert_allclose(chosen, llff.viewmats, atol=1e-5)
+@pytest.fixture(scope="module")
+def transposed_copy(tmp_path_factory) -> Path:
+    """The real scene with an images.bin as an earlier copy of IUI3-RedSea had it: every rotation replaced by
+    its transpose (camera-to-world written where COLMAP expects world-to-camera), camera centres unchanged.
+    Images and poses_bounds.npy are links to the real files."""
+    root = tmp_path_factory.mktemp("transposed") / "IUI3-RedSea"
+    (root / "sparse" / "0").mkdir(parents=True)
+    for name in ("Images_wb", "poses_bounds.npy"):
+        (root / name).symlink_to(REAL_SCENE / name)
     rec = pycolmap.Reconstruction(str(REAL_SCENE / "sparse" / "0"))
-    images_bin = np.tile(np.eye(4), (29, 1, 1))
-    for k, image in enumerate(sorted(rec.images.values(), key=lambda im: im.name)):
-        images_bin[k, :3] = image.cam_from_world().matrix()
-    ours, theirs = point_color_errors(real_raw), point_color_errors(real_raw, images_bin)
-    shuffled = dataclasses.replace(real_raw, point_colors=real_raw.point_colors[
-        torch.randperm(len(real_raw.points), generator=torch.Generator().manual_seed(0))])
+    for image in rec.images.values():
+        pose = image.cam_from_world()
+        R = pose.rotation.matrix()
+        centre = -R.T @ pose.translation
+        rec.frames[image.frame_id].set_cam_from_world(image.camera_id, pycolmap.Rigid3d(
+            pycolmap.Rotation3d(R.T), -R.T @ centre))  # world-to-camera (R^T, -R^T c) keeps the centre c
+    rec.write_binary(str(root / "sparse" / "0"))
+    return root
+
+
+@needs_real
+def test_chosen_poses_fit_the_images_and_beat_images_bin(transposed_copy, real_cache, capsys):
+    """'auto' detects an images.bin that holds transposed rotations and uses poses_bounds.npy: coloured SfM
+    points then land on pixels of their colour, far below chance and below images.bin's poses, every view."""
+    capsys.readouterr()
+    scene = read_seathru_scene(transposed_copy, "auto", real_cache, FACTOR)
+    warning = capsys.readouterr().err
+    assert "disagree" in warning and "transposes" in warning and "Using poses_bounds.npy" in warning
+    llff = read_poses_bounds(REAL_SCENE / "poses_bounds.npy", 29, "test")
+    chosen = np.stack([c.viewmat.double().numpy() for c in scene.cameras])
+    np.testing.assert_allclose(chosen, llff.viewmats, atol=1e-5)
+    images_bin = read_colmap_model(transposed_copy / "sparse" / "0").viewmats
+    assert compare_poses(images_bin, llff.viewmats).transposed
+    ours, theirs = point_color_errors(scene), point_color_errors(scene, images_bin)
+    shuffled = dataclasses.replace(scene, point_colors=scene.point_colors[
+        torch.randperm(len(scene.points), generator=torch.Generator().manual_seed(0))])
     chance = point_color_errors(shuffled)
     assert (ours < theirs).all()
     assert ours.mean() < 0.7 * theirs.mean() and ours.mean() < 0.7 * chance.mean(), (ours.mean(), theirs.mean())
     # the explicit choice is honoured, with a warning naming the disagreement
-    capsys.readouterr()
-    forced = read_seathru_scene(REAL_SCENE, "colmap", real_cache, FACTOR)
+    forced = read_seathru_scene(transposed_copy, "colmap", real_cache, FACTOR)
     np.testing.assert_allclose(np.stack([c.viewmat.double().numpy() for c in forced.cameras]), images_bin, atol=1e-5)
     assert "transposes" in capsys.readouterr().err
+
+
+@needs_real
+def test_real_copy_pose_sources_agree(real_raw, real_cache, capsys):
+    """The shared copy's images.bin was rewritten to agree with poses_bounds.npy: 'auto' loads it without a
+    pose warning, with the COLMAP poses (equal to the LLFF ones), and they fit the images."""
+    capsys.readouterr()
+    scene = read_seathru_scene(REAL_SCENE, "auto", real_cache, FACTOR)
+    err = capsys.readouterr().err
+    assert "disagree" not in err and "transposes" not in err, err
+    model = read_colmap_model(REAL_SCENE / "sparse" / "0")
+    llff = read_poses_bounds(REAL_SCENE / "poses_bounds.npy", 29, "test")
+    comparison = compare_poses(model.viewmats, llff.viewmats)
+    assert comparison.agree and not comparison.transposed
+    np.testing.assert_allclose(model.viewmats, llff.viewmats, atol=1e-9)
+    chosen = np.stack([c.viewmat.double().numpy() for c in scene.cameras])
+    np.testing.assert_allclose(chosen, model.viewmats, atol=1e-5)
+    torch.testing.assert_close(scene.images, real_raw.images)
+    shuffled = dataclasses.replace(scene, point_colors=scene.point_colors[
+        torch.randperm(len(scene.points), generator=torch.Generator().manual_seed(0))])
+    assert point_color_errors(scene).mean() < 0.7 * point_color_errors(shuffled).mean()
 
 
 @needs_real
@@ -208,14 +261,14 @@ def test_short_training_run_on_the_real_scene(tmp_path, real_cache, real_dataman
     """3DGS at 86x57 for 150 steps through the Trainer: the test views must reach PSNR_FLOOR. The SfM points
     are subsampled to 3000 here only to keep the CPU reference rasterizer fast (its cost per step grows
     faster than linearly with the Gaussians per tile: ~2 s per step with all 21,907, 0.1 s with 3000)."""
-    load_scene = SeathruNerfDataManager.load_scene
+    parse = SeathruNerfDataParser.parse
 
-    def fewer_points(self, data):
-        scene = load_scene(self, data)
+    def fewer_points(self, data, downscale_factor):
+        scene = parse(self, data, downscale_factor)
         keep = torch.randperm(len(scene.points), generator=torch.Generator().manual_seed(0))[:TRAIN_POINTS]
         return dataclasses.replace(scene, points=scene.points[keep], point_colors=scene.point_colors[keep])
 
-    monkeypatch.setattr(SeathruNerfDataManager, "load_scene", fewer_points)
+    monkeypatch.setattr(SeathruNerfDataParser, "parse", fewer_points)
     config = dataclasses.replace(
         gaussian_splatting.config, data=REAL_SCENE, downscale_factor=FACTOR, max_num_iterations=TRAIN_STEPS,
         output_dir=tmp_path, progress=False, device="cpu", timestamp="t", steps_per_save=10**6,
@@ -466,3 +519,119 @@ def test_uw_train_reports_bad_data_without_a_traceback(tmp_path, capsys, monkeyp
     assert info.value.code == 2
     out = capsys.readouterr().out
     assert f"{root / 'images' / '0001.png'}" in out and "Traceback (most recent call last)" not in out
+
+
+# ----------------------------------------------------------------------------------------------------
+# The one DataManager: the downscale factor is checked there
+
+
+@pytest.mark.parametrize("factor", [0, -2])
+def test_a_bad_downscale_factor_is_named(tmp_path, factor):
+    root = make_dataset(tmp_path / "data", model="PINHOLE")
+    with pytest.raises(ValueError, match=f"--downscale-factor must be a positive integer, got {factor}"):
+        ColmapDataManagerConfig(cache_dir=tmp_path / "cache").setup(data=root, downscale_factor=factor)
+
+
+def test_a_factor_larger_than_the_images_names_the_flag_and_the_size(tmp_path, cache_dir, tiny_scene_config):
+    """Both ways of downscaling (image by image while reading, or the whole scene) say so in one message."""
+    root = make_dataset(tmp_path / "data", model="OPENCV")
+    undistorted = plan_views([pycolmap.Reconstruction(str(root / "sparse" / "0")).cameras[1]], Path("c"))[0].target
+    with pytest.raises(ValueError) as info:
+        ColmapDataManagerConfig(cache_dir=tmp_path / "cache").setup(data=root, downscale_factor=WIDTH)
+    size = f"{undistorted.width}x{undistorted.height}"
+    assert f"--downscale-factor {WIDTH} is larger than the images ({size} pixels" in str(info.value)
+    synthetic = SyntheticDataManagerConfig(scene=tiny_scene_config, cache_dir=cache_dir)
+    with pytest.raises(ValueError, match=r"--downscale-factor 40 is larger than the images \(48x36 pixels\)"):
+        synthetic.setup(data=None, downscale_factor=40)
+    assert synthetic.setup(data=None, downscale_factor=36).scene.images.shape[1:3] == (1, 1)
+
+
+# ----------------------------------------------------------------------------------------------------
+# A third-party data plugin: a config that names its parser, registered at run time
+
+
+class NpzDataParser(DataParser):
+    """A made-up format: DATA/views.npz with uint8 images [N, H, W, 3], one K, world-to-camera viewmats, and
+    points with colours. Small images read whole, then downscaled by the shared rule."""
+
+    config: NpzDataManagerConfig
+
+    def parse(self, data: Path | None, downscale_factor: int) -> SceneData:
+        if data is None:
+            raise ValueError("the npz datamanager needs --data: a folder with views.npz")
+        views = np.load(Path(data) / "views.npz")
+        images = torch.from_numpy(views["images"].astype(np.float32) / 255.0)
+        height, width = images.shape[1:3]
+        K = torch.from_numpy(views["K"]).float()
+        cameras = [Camera(torch.from_numpy(v).float(), K, width, height, f"{k:03d}")
+                   for k, v in enumerate(views["viewmats"])]
+        scene = SceneData(self.config.scene_name or Path(data).name, [c.name for c in cameras], images, cameras,
+                          torch.from_numpy(views["points"]).float(), torch.from_numpy(views["colors"]).float(),
+                          near=0.5, far=10.0)
+        return downscale_scene(scene, downscale_factor)
+
+
+@dataclass(frozen=True)
+class NpzDataManagerConfig(DataManagerConfig):
+    scene_name: str = ""
+    """Name of the scene (default: the folder's)."""
+    parser: ClassVar[type[DataParser]] = NpzDataParser
+
+    @classmethod
+    def can_read(cls, path: Path) -> bool:
+        return (path / "views.npz").is_file()
+
+
+def _write_npz_dataset(root: Path, tmp_path: Path) -> Path:
+    scene = _read(make_dataset(tmp_path / "colmap-source", model="PINHOLE"), tmp_path / "cache")
+    root.mkdir()
+    np.savez(root / "views.npz", images=np.rint(scene.images.numpy() * 255).astype(np.uint8),
+             K=scene.cameras[0].K.numpy(), viewmats=np.stack([c.viewmat.numpy() for c in scene.cameras]),
+             points=scene.points.numpy(), colors=scene.point_colors.numpy())
+    return root
+
+
+def test_a_third_party_data_plugin_trains_and_loads(tmp_path, monkeypatch):
+    monkeypatch.setattr(DATAMANAGERS, "_specs", dict(DATAMANAGERS.items()))  # registered for this test only
+    DATAMANAGERS.register(DataManagerSpec("npz", "views.npz folders (a test plugin)", NpzDataManagerConfig()))
+    root = _write_npz_dataset(tmp_path / "reef", tmp_path)
+    assert type(AutoDataManagerConfig().resolve(root)) is NpzDataManagerConfig
+    # the plugin's option on the command line, the datamanager its parser feeds, the run's config.yml
+    uw_train(["3dgs", "--data", str(root), "--output-dir", str(tmp_path / "out"), "--max-num-iterations", "3",
+              "--steps-per-save", "3", "--downscale-factor", "2", "--no-progress", "npz", "--datamanager.llffhold",
+              "2", "--datamanager.scene-name", "plugin-reef"])
+    (config_path,) = (tmp_path / "out" / "plugin-reef" / "3dgs").glob("*/config.yml")
+    text = config_path.read_text()
+    assert f"_type: {NpzDataManagerConfig.__module__}.NpzDataManagerConfig" in text and "parser" not in text
+    config, dm, model, _ = load_trained(config_path)
+    assert type(dm) is DataManager and type(dm.parser) is NpzDataParser
+    assert (dm.scene_name, dm.train_indices, dm.test_indices) == ("plugin-reef", [1, 3], [0, 2])
+    assert dm.scene.images.shape == (4, HEIGHT // 2, WIDTH // 2, 3)
+    assert dm.cameras[0].K[0, 0].item() == pytest.approx(CAMERA_PARAMS["PINHOLE"][0] / 2)
+    assert "parser" not in {f.name for f in dataclasses.fields(NpzDataManagerConfig)}
+    assert dm.next_train()["image"].shape == (HEIGHT // 2, WIDTH // 2, 3)
+
+
+def test_a_plugin_config_without_a_parser_is_a_clear_error(tmp_path):
+    @dataclass(frozen=True)
+    class NoParserConfig(DataManagerConfig):
+        pass
+
+    with pytest.raises(TypeError, match="names no parser"):
+        NoParserConfig().setup(data=tmp_path, downscale_factor=1)
+
+
+def test_a_parser_that_forgets_to_downscale_is_caught(tmp_path):
+    class Lazy(NpzDataParser):
+        def parse(self, data, downscale_factor):
+            scene = super().parse(data, 1)
+            return dataclasses.replace(scene, images=downscale_scene(scene, downscale_factor).images)
+
+    @dataclass(frozen=True)
+    class LazyConfig(NpzDataManagerConfig):
+        parser: ClassVar[type[DataParser]] = Lazy
+
+    root = _write_npz_dataset(tmp_path / "reef", tmp_path)
+    with pytest.raises(ValueError, match="returned 20x15 images but camera '000' is 40x30"):
+        LazyConfig().setup(data=root, downscale_factor=2)
+    assert LazyConfig().setup(data=root, downscale_factor=1).scene.images.shape[1:3] == (HEIGHT, WIDTH)

@@ -103,6 +103,7 @@ def test_too_few_registered_images_is_a_clear_error(tmp_path, capsys):
     assert "registered only 0 of 3 images" in text
     assert "overlap" in text
     assert out.is_dir() and not any(out.iterdir())  # left empty: the same command can run again
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["murk", "out"]  # and no half-written dataset beside it
 
 
 def test_argument_errors(scene_dir, tmp_path, capsys):

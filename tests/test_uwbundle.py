@@ -353,6 +353,21 @@ def test_read_only_dataset_caches_the_model_in_the_cache_dir(capture, loaded, tm
     assert isinstance(AutoDataManagerConfig().resolve(copy), UWBundleDataManagerConfig)
 
 
+def test_a_sparse_folder_of_something_else_is_left_alone(capture, tmp_path):
+    """ROOT/sparse/ that holds no model and no uw3dgs stamp (here a note) is not ours to replace: the model goes
+    to the cache, whole (model and stamp together), and the folder is untouched."""
+    root, _ = capture
+    copy = Path(shutil.copytree(root, tmp_path / "pool", ignore=shutil.ignore_patterns("sparse")))
+    (copy / "sparse").mkdir()
+    (copy / "sparse" / "notes.txt").write_text("mine")
+    scene = read_uwbundle(copy, cache_dir=tmp_path / "cache", progress=False)
+    assert [p.name for p in (copy / "sparse").iterdir()] == ["notes.txt"]
+    (cached,) = (tmp_path / "cache" / "uwbundle").glob("pool-*/sparse")
+    assert sorted(p.name for p in cached.iterdir()) == ["0", uwbundle.STAMP]
+    assert uwbundle._read_stamp(cached)["registered"] == len(scene.image_names)
+    assert not [p for p in cached.parent.iterdir() if p.name.startswith(".")]  # no temporary folder left
+
+
 def test_too_few_registered_images_is_a_clear_error(tmp_path):
     rng = np.random.default_rng(0)
     for k in range(2):
@@ -398,7 +413,7 @@ def test_sfm_retries_a_model_that_fails_the_quality_check(capture, tmp_path, cap
     calls.clear()
     sparse = run_sfm(root, tmp_path / "b", {"left": LEFT.fixed_camera()}, image_names=names, progress=False,
                      quality_check=never_good, attempts=3)
-    assert len(calls) == 3 and "never good after 3 attempts" in capsys.readouterr().out
+    assert len(calls) == 3 and "warning: structure from motion: never good after 3 attempts" in capsys.readouterr().err
     assert pycolmap.Reconstruction(str(sparse)).num_reg_images() == calls[0]  # the least bad: the first
 
 

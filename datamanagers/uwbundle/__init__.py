@@ -18,24 +18,22 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
-import sys
 import tempfile
 import time
 import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 import pycolmap
 import torch
 
-from uw3dgs.config import Target, target
 from uw3dgs.data import colmap_dataset
 from uw3dgs.data.cache import default_cache_dir
-from uw3dgs.data.datamanager import DataManager, DataManagerConfig
+from uw3dgs.data.datamanager import DataManagerConfig
+from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.sfm import IMAGE_EXTENSIONS, list_images, quiet_colmap, run_sfm
 from uw3dgs.datamanagers.uwbundle.calib import CalibCamera as CalibCamera
@@ -48,15 +46,15 @@ from uw3dgs.datamanagers.uwbundle.geometry import umeyama as umeyama
 from uw3dgs.datamanagers.uwbundle.ply import read_ply_points
 from uw3dgs.datamanagers.uwbundle.ply import write_ply_points as write_ply_points
 from uw3dgs.registry import DataManagerSpec
+from uw3dgs.utils.console import info, warn
 from uw3dgs.utils.images import image_size
+from uw3dgs.utils.io import atomic_folder
 
-"""Bump when the SfM recipe changes: it is part of the cache key, so cached models are rebuilt."""
 SFM_VERSION = 1
 """Bump when the SfM recipe changes: it is part of the cache key, so cached models are rebuilt."""
 STAMP = "uw3dgs_sfm.json"
 """Written next to a model this datamanager made (ROOT/sparse/uw3dgs_sfm.json): its cache key and stats."""
 SIDES = ("left", "right")
-
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -199,17 +197,16 @@ def ensure_model(root: Path, calib: StereoCalibration, image_root: Path, matcher
         size = _first_image_size(image_root, [n for n, s in sides.items() if s == side])
         if size != (fixed.width, fixed.height):
             fixed = fixed.rescaled(*size)  # images resized after calibration (same aspect ratio)
-            print(f"uw3dgs: {side} images are {size[0]}x{size[1]}, the calibration is for {cam.width}x{cam.height}; "
-                  "intrinsics rescaled to match", file=sys.stderr)
+            info(f"{side} images are {size[0]}x{size[1]}, the calibration is for {cam.width}x{cam.height}; "
+                 "intrinsics rescaled to match")
         cameras[folder] = fixed
-    print(f"uw3dgs: {root.name}: no camera poses yet; running structure from motion on {len(names)} images "
-          f"({len(pairs)} stereo pairs) with the calibrated intrinsics. This happens once; the model is cached.",
-          file=sys.stderr)
+    info(f"{root.name}: no camera poses yet; running structure from motion on {len(names)} images "
+         f"({len(pairs)} stereo pairs) with the calibrated intrinsics. This happens once; the model is cached.")
     start = time.perf_counter()
-    in_dataset = _writable(root) and (stamp is not None or not user_model.exists())
+    in_dataset = _writable(root) and (stamp is not None or _empty_or_missing(root / "sparse"))
     target_parent = root / "sparse" if in_dataset else cache_parent / "sparse"
     target_parent.parent.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix=".sfm-", dir=target_parent.parent))
+    work = Path(tempfile.mkdtemp(prefix=".sfm-", dir=target_parent.parent))  # scratch: database, mapping
     try:
         sparse = run_sfm(image_root, work, cameras, matcher=matcher, progress=progress,
                          sequence_key=lambda name: str(Path(name.split("/", 1)[1]).with_suffix("")),
@@ -219,22 +216,30 @@ def ensure_model(root: Path, calib: StereoCalibration, image_root: Path, matcher
         if check.pairs:
             rec.transform(pycolmap.Sim3d(check.scale, pycolmap.Rotation3d(), np.zeros(3)))
         _warn_stereo(check, calib, target_parent / "0")
-        out = work / "out"
-        (out / "0").mkdir(parents=True)
-        rec.write_binary(str(out / "0"))
         stats = {"key": key, "registered": rec.num_reg_images(), "images": len(names), "points": rec.num_points3D(),
                  "seconds": round(time.perf_counter() - start, 1), "matcher": matcher, "stereo_pairs_used": check.pairs,
                  "scale_to_calibration_units": check.scale, "baseline_spread": check.baseline_spread,
                  "stereo_rotation_error_deg": check.rotation_error_deg, "sfm_version": SFM_VERSION}
-        (out / STAMP).write_text(json.dumps(stats, indent=2) + "\n")
-        # Model and stamp appear together (a rename): a killed run never leaves a stamp-less model that a
-        # later load would take for the user's own.
-        if _read_stamp(target_parent) is not None:
-            shutil.rmtree(target_parent)  # our own stale model (images or calibration changed)
-        os.replace(out, target_parent)
+        # Model and stamp appear together (one folder, renamed into place): a killed run never leaves a
+        # stamp-less model that a later load would take for the user's own. Our own stale model (images or
+        # calibration changed) is replaced; the same model written meanwhile by another process is kept.
+        existing = _read_stamp(target_parent)
+        stale = (existing is not None and existing.get("key") != key) or _empty_or_missing(target_parent)
+        with atomic_folder(target_parent, replace=stale) as out:
+            (out / "0").mkdir()
+            rec.write_binary(str(out / "0"))
+            (out / STAMP).write_text(json.dumps(stats, indent=2) + "\n")
+        if (_read_stamp(target_parent) or {}).get("key") != key:
+            raise ValueError(f"{target_parent}: a folder that uw3dgs did not write is in the way of the structure "
+                             "from motion model; move it away and load the dataset again")
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return target_parent / "0"
+
+
+def _empty_or_missing(folder: Path) -> bool:
+    """No `folder`, or an empty one (which a new model may take the place of)."""
+    return not folder.exists() or (folder.is_dir() and not any(folder.iterdir()))
 
 
 def _first_image_size(image_root: Path, names: list[str]) -> tuple[int, int]:
@@ -258,22 +263,23 @@ def stereo_badness(check: StereoCheck) -> tuple[float, str]:
 
 def _warn_stereo(check: StereoCheck, calib: StereoCalibration, model: Path) -> None:
     if not check.pairs:
-        print(f"uw3dgs: warning: no stereo pair registered with both images; the model keeps SfM's arbitrary "
-              f"scale instead of {calib.path}'s units", file=sys.stderr)
+        warn(f"no stereo pair registered with both images; the model keeps SfM's arbitrary scale instead of "
+             f"{calib.path}'s units")
         return
     if stereo_badness(check)[0] > 1.0:
-        print(f"uw3dgs: warning: the SfM poses disagree with {calib.path} over {check.pairs} stereo pairs "
-              f"(baseline spread {100 * check.baseline_spread:.0f}%, rotation off by {check.rotation_error_deg:.1f} "
-              "deg): the model is probably wrong. Structure from motion may have settled in a wrong local minimum "
-              "(try --datamanager.matcher sequential, or more images), left/ and right/ may be swapped, or the "
-              f"calibration may be another rig's. Delete {model.parent} to run it again.", file=sys.stderr)
+        warn(f"the SfM poses disagree with {calib.path} over {check.pairs} stereo pairs "
+             f"(baseline spread {100 * check.baseline_spread:.0f}%, rotation off by {check.rotation_error_deg:.1f} "
+             "deg): the model is probably wrong. Structure from motion may have settled in a wrong local minimum "
+             "(try --datamanager.matcher sequential, or more images), left/ and right/ may be swapped, or the "
+             f"calibration may be another rig's. Delete {model.parent} to run it again.")
 
 
 def load_model_scene(root: Path, image_root: Path, sparse_dir: Path, cache_dir: Path | None,
                      downscale_factor: int = 1) -> SceneData:
-    """read_colmap_dataset on the model. Camera models that reader cannot undistort (FULL_OPENCV, used when
-    the calibration has k3 != 0) are undistorted by COLMAP first (pycolmap.undistort_images), once, into
-    the cache: <cache_dir>/uwbundle/undistorted-<hash of the model and image folder>/."""
+    """read_colmap_dataset on the model (downscaled one image at a time while reading, through the image
+    cache). Camera models that reader cannot undistort (FULL_OPENCV, used when the calibration has k3 != 0)
+    are undistorted by COLMAP first (pycolmap.undistort_images), once, into the cache:
+    <cache_dir>/uwbundle/undistorted-<hash of the model and image folder>/ (written whole, atomically)."""
     rec = pycolmap.Reconstruction(str(sparse_dir))
     if all(c.model_name in colmap_dataset.SUPPORTED_CAMERA_MODELS for c in rec.cameras.values()):
         return colmap_dataset.read_colmap_dataset(root, image_root, sparse_dir, cache_dir, downscale_factor)
@@ -282,15 +288,9 @@ def load_model_scene(root: Path, image_root: Path, sparse_dir: Path, cache_dir: 
         digest.update(path.name.encode() + path.read_bytes())
     undistorted = (cache_dir or default_cache_dir()) / "uwbundle" / f"undistorted-{digest.hexdigest()[:16]}"
     if not (undistorted / "sparse").is_dir():
-        undistorted.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".undistort-", dir=undistorted.parent))
-        try:
-            with quiet_colmap():
-                pycolmap.undistort_images(str(tmp), str(sparse_dir), str(image_root))
-            shutil.rmtree(undistorted, ignore_errors=True)
-            tmp.rename(undistorted)  # atomic: a killed run leaves no half-undistorted folder behind
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
+        # a killed run leaves no half-undistorted folder behind; a folder without sparse/ is replaced
+        with atomic_folder(undistorted, replace=True) as tmp, quiet_colmap():
+            pycolmap.undistort_images(str(tmp), str(sparse_dir), str(image_root))
     return colmap_dataset.read_colmap_dataset(root, undistorted / "images", undistorted / "sparse", cache_dir,
                                               downscale_factor)
 
@@ -317,35 +317,37 @@ def read_uwbundle(root: Path, matcher: str = "exhaustive", cache_dir: Path | Non
 
 
 # ----------------------------------------------------------------------------------------------------
-# The datamanager
+# The data plugin
+
+
+class UWBundleDataParser(DataParser):
+    """A UWBundle folder through `read_uwbundle`: SfM on first use, undistorted, and downscaled one image at a
+    time while reading (through the image cache), normalised unless --datamanager.no-normalize."""
+
+    config: UWBundleDataManagerConfig
+
+    def parse(self, data: Path | None, downscale_factor: int) -> SceneData:
+        if data is None:
+            raise ValueError("the uwbundle datamanager needs --data: a folder with a .calib file and left/, right/ "
+                             "image folders (see docs/uwbundle.md)")
+        return read_uwbundle(Path(data), self.config.matcher, self.config.cache_dir, downscale_factor,
+                             normalize=self.config.normalize)
 
 
 @dataclass(frozen=True)
 class UWBundleDataManagerConfig(DataManagerConfig):
-    _target: Target = target(lambda: UWBundleDataManager)
     matcher: Literal["exhaustive", "sequential"] = "exhaustive"
     """First-use SfM matching: exhaustive (every pair, up to a few hundred images) or sequential (by file name)."""
     cache_dir: Path | None = None
     """Processed images, and SfM models of read-only datasets; default $UW3DGS_CACHE or ~/.cache/uw3dgs."""
     normalize: bool = True
     """Centre on the cameras, median point distance 1 (recorded in the run); dataset units are the .calib's."""
+    parser: ClassVar[type[DataParser]] = UWBundleDataParser
 
     @classmethod
     def can_read(cls, path: Path) -> bool:
         """A folder holding a .calib stereo calibration file."""
         return path.is_dir() and any(p.suffix.lower() == ".calib" and p.is_file() for p in path.iterdir())
-
-
-class UWBundleDataManager(DataManager):
-    config: UWBundleDataManagerConfig
-    downscales_on_load = True
-
-    def load_scene(self, data: Path | None) -> SceneData:
-        if data is None:
-            raise ValueError("the uwbundle datamanager needs --data: a folder with a .calib file and left/, right/ "
-                             "image folders (see docs/uwbundle.md)")
-        return read_uwbundle(Path(data), self.config.matcher, self.config.cache_dir, self.downscale_factor,
-                             normalize=self.config.normalize)
 
 
 datamanager = DataManagerSpec(

@@ -8,12 +8,12 @@ Writes OUT/images/ and OUT/sparse/0/ (undistorted PINHOLE cameras, by COLMAP's u
 `colmap` datamanager reads as it is: `uw-train uw3dgs --data OUT`. OUT/colmap/ keeps the feature database
 and the distorted model. Video is read with the `ffmpeg` program when it is installed (no Python video
 library is needed); otherwise extract frames yourself (`ffmpeg -i dive.mp4 frames/%05d.png`) and pass the
-folder with --images.
+folder with --images. The dataset is assembled beside OUT and renamed into place when complete: a failed or
+killed run leaves OUT as it was (empty), so the same command can simply be run again.
 """
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import tempfile
@@ -33,7 +33,9 @@ from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.data.sfm import FixedCamera, SfmError, list_images, quiet_colmap, run_sfm
+from uw3dgs.utils.console import warn
 from uw3dgs.utils.images import image_size
+from uw3dgs.utils.io import atomic_folder
 
 
 @dataclass(frozen=True)
@@ -152,16 +154,14 @@ def parse_camera(model: str, params: str | None, width: int, height: int) -> Fix
 
 
 def undistort(sparse_dir: Path, image_dir: Path, out: Path) -> None:
-    """COLMAP's undistorter: out/images/ and out/sparse/0/ with PINHOLE cameras (nothing else kept)."""
-    tmp = Path(tempfile.mkdtemp(prefix=".undistort-", dir=out))
-    try:
+    """COLMAP's undistorter: out/images/ and out/sparse/0/ with PINHOLE cameras (nothing else kept). `out` is
+    the dataset's staging folder (see `process`): it appears as a whole or not at all."""
+    with tempfile.TemporaryDirectory(prefix=".undistort-", dir=out) as scratch:
         with quiet_colmap():
-            pycolmap.undistort_images(str(tmp), str(sparse_dir), str(image_dir))
-        os.replace(tmp / "images", out / "images")
+            pycolmap.undistort_images(scratch, str(sparse_dir), str(image_dir))
+        (Path(scratch) / "images").rename(out / "images")
         (out / "sparse").mkdir(exist_ok=True)
-        os.replace(tmp / "sparse", out / "sparse" / "0")
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        (Path(scratch) / "sparse").rename(out / "sparse" / "0")
 
 
 def plausibility_warning(camera: pycolmap.Camera) -> str | None:
@@ -183,20 +183,21 @@ def process(args: ProcessDataArgs, console: Console, progress: bool = True) -> d
     check_out(args.out)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
-    try:
-        return _process(args, console, progress, start)
-    except BaseException:
-        # leave --out empty again, so that the same command with other options can simply be re-run
-        for child in args.out.iterdir():
-            shutil.rmtree(child) if child.is_dir() else child.unlink()
-        raise
+    # Everything is written to a hidden sibling of --out, which replaces the (empty) --out once complete: a
+    # failed or killed run leaves --out empty, so the same command with other options can simply be re-run.
+    target = args.out.resolve() if args.out.is_symlink() else args.out  # a link to a folder: fill the folder
+    with atomic_folder(target, replace=True) as staged:
+        summary = _process(args, staged, console, progress, start)
+        check_out(args.out)  # still empty: never replace what appeared there meanwhile
+    return summary
 
 
-def _process(args: ProcessDataArgs, console: Console, progress: bool, start: float) -> dict:
-    work = args.out / "colmap"
+def _process(args: ProcessDataArgs, out: Path, console: Console, progress: bool, start: float) -> dict:
+    """The pipeline, writing the dataset into `out` (the staging folder of --out)."""
+    work = out / "colmap"
     work.mkdir()
     matcher = args.matcher if args.matcher != "auto" else ("sequential" if args.video else "exhaustive")
-    scratch = Path(tempfile.mkdtemp(prefix=".input-", dir=args.out))
+    scratch = Path(tempfile.mkdtemp(prefix=".input-", dir=out))
     try:
         if args.video is not None:
             console.print(f"extracting every {args.every_n}th frame of {args.video} with ffmpeg ...")
@@ -213,7 +214,7 @@ def _process(args: ProcessDataArgs, console: Console, progress: bool, start: flo
                          verbose=args.verbose)
         rec = pycolmap.Reconstruction(str(sparse))
         console.print("undistorting to pinhole cameras ...")
-        undistort(sparse, source, args.out)
+        undistort(sparse, source, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     cam = next(iter(rec.cameras.values()))
@@ -247,7 +248,7 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
         exit_with_error(exc, console)
     console.print(summary_table(args, info))
     if info["warning"]:
-        console.print(f"[bold yellow]warning:[/bold yellow] {info['warning']}")
+        warn(info["warning"])
     console.print(f"Train on it with: uw-train uw3dgs --data {args.out}")
 
 

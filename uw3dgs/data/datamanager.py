@@ -1,23 +1,26 @@
-"""Datamanager base: loads a scene, splits it, and serves training and test views.
+"""The datamanager: splits one scene and serves its training and test views, whatever format it came from.
 
-A datamanager plugin subclasses `DataManagerConfig` (its knobs) and `DataManager` (`load_scene`),
-and registers a `DataManagerSpec` under the entry-point group `uw3dgs.datamanagers`.
+A data plugin does not subclass `DataManager`. It defines a `DataManagerConfig` subclass (its options, the
+layouts it recognises) that names its `uw3dgs.data.dataparser.DataParser` subclass (the reader of its format)
+in the ClassVar `parser`, and registers a `DataManagerSpec` under the entry-point group `uw3dgs.datamanagers`.
+`config.setup(data=..., downscale_factor=..., device=..., seed=...)` builds the one `DataManager`, which asks the
+parser for the scene. See docs/datasets.md, "Writing a data plugin".
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
+from numbers import Integral
 from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
-import torch.nn.functional as F
 
-from uw3dgs.cameras import Camera
 from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.data.covisibility import covisible_mask
-from uw3dgs.data.scene import GroundTruth, SceneData
+from uw3dgs.data.dataparser import DataParser
+from uw3dgs.data.downscale import FactorTooLargeError
+from uw3dgs.data.scene import SceneData
 
 Batch = dict[str, Any]
 """One view: 'index', 'camera', 'image' [H, W, 3]; plus 'clean_image' and 'range' where known (and, for test
@@ -26,10 +29,16 @@ views, 'covisible')."""
 
 @dataclass(frozen=True)
 class DataManagerConfig(InstantiateConfig):
+    """A data plugin's options. `setup(data=..., downscale_factor=..., device=..., seed=...)` builds the
+    `DataManager`, which reads the scene with a `parser(config)`."""
+
     _target: Target = target(lambda: DataManager)
     llffhold: int = 8
     """Every llffhold-th view (sorted by name, index % llffhold == 0) is held out for testing; 0 = none."""
 
+    parser: ClassVar[type[DataParser] | None] = None
+    """The plugin's reader (a `DataParser` subclass). A class attribute, not a field: neither a command-line
+    option nor written to config.yml."""
     generic: ClassVar[bool] = False
     """A catch-all layout (e.g. any COLMAP folder): when a specific datamanager also reads `--data`, it wins."""
 
@@ -37,6 +46,13 @@ class DataManagerConfig(InstantiateConfig):
     def can_read(cls, path: Path) -> bool:
         """Whether `path` looks like this datamanager's layout (used when `--data` is given)."""
         return False
+
+    def make_parser(self) -> DataParser:
+        """The parser that reads this plugin's format, configured by this config."""
+        if self.parser is None:
+            raise TypeError(f"{type(self).__name__} names no parser: a data plugin's config sets the class "
+                            "attribute `parser = MyDataParser` (a uw3dgs.data.dataparser.DataParser subclass)")
+        return self.parser(self)
 
 
 def split_indices(num_views: int, llffhold: int) -> tuple[list[int], list[int]]:
@@ -48,49 +64,31 @@ def split_indices(num_views: int, llffhold: int) -> tuple[list[int], list[int]]:
     return train, test
 
 
-def downscale_scene(scene: SceneData, factor: int) -> SceneData:
-    """Area-average images (and ground truth) by an integer factor and scale the intrinsics to match."""
-    if factor == 1:
-        return scene
-    if factor < 1:
-        raise ValueError(f"--downscale-factor must be a positive integer, got {factor}")
-
-    def pool(x: torch.Tensor) -> torch.Tensor:  # [N, H, W, C] -> [N, H/f, W/f, C]
-        return F.avg_pool2d(x.permute(0, 3, 1, 2), factor).permute(0, 2, 3, 1).contiguous()
-
-    cameras = []
-    for cam in scene.cameras:
-        K = cam.K.clone()
-        K[:2] /= factor  # with pixel-centre coordinates u + 0.5, cx and cy scale by the same factor
-        cameras.append(Camera(cam.viewmat, K, cam.width // factor, cam.height // factor, cam.name))
-    gt = None
-    if scene.gt is not None:
-        ranges = scene.gt.ranges.unsqueeze(-1)
-        # open water (inf) must stay open water: pool a finite copy, then mark blocks with any inf
-        finite = torch.where(torch.isfinite(ranges), ranges, torch.zeros_like(ranges))
-        any_inf = pool((~torch.isfinite(ranges)).float()) > 0
-        pooled = torch.where(any_inf, torch.full_like(any_inf, float("inf"), dtype=ranges.dtype), pool(finite))
-        gt = GroundTruth(pool(scene.gt.clean_images), pooled.squeeze(-1), scene.gt.medium)
-    return dataclasses.replace(scene, images=pool(scene.images), cameras=cameras, gt=gt)
-
-
 class DataManager:
-    """Serves one random training view per step (a fresh permutation each epoch, as 3DGS does)."""
+    """Serves the views of one scene, whatever its format: the split, one random training view per step (a fresh
+    permutation each epoch, as 3DGS does, from its own generator), test views, and the state a resumed run needs.
 
-    downscales_on_load: ClassVar[bool] = False
-    """True when `load_scene` already returns the scene at 1/`self.downscale_factor` (e.g. through an image
-    cache); the base class then leaves it as it is instead of downscaling it again."""
+    The scene comes from the config's parser (`config.make_parser().parse(data, downscale_factor)`); this is
+    the one place where `--downscale-factor` is checked.
+    """
 
     def __init__(self, config: DataManagerConfig, data: Path | None, downscale_factor: int = 1,
                  device: str | torch.device = "cpu", seed: int = 0):
-        if downscale_factor < 1:
+        if isinstance(downscale_factor, bool) or not isinstance(downscale_factor, Integral) or downscale_factor < 1:
             raise ValueError(f"--downscale-factor must be a positive integer, got {downscale_factor}")
+        downscale_factor = int(downscale_factor)
         self.config = config
         self.data = data
         self.device = torch.device(device)
         self.downscale_factor = downscale_factor
-        scene = self.load_scene(data)
-        self.scene = scene if self.downscales_on_load else downscale_scene(scene, downscale_factor)
+        self.parser = config.make_parser()
+        try:
+            self.scene = self.parser.parse(data, downscale_factor)
+        except FactorTooLargeError as err:
+            raise ValueError(f"--downscale-factor {downscale_factor} is larger than the images "
+                             f"({err.width}x{err.height} pixels{f' in {data}' if data is not None else ''}): "
+                             f"choose a factor of at most {min(err.width, err.height)}") from err
+        check_scene(self.scene, type(self.parser).__name__)
         self.train_indices, self.test_indices = split_indices(len(self.scene.image_names), config.llffhold)
         if not self.train_indices:
             raise ValueError(f"{data}: no training views left after holding out every {config.llffhold}-th view")
@@ -99,9 +97,6 @@ class DataManager:
         self._generator = torch.Generator().manual_seed(seed)
         self._queue: list[int] = []
         self._covisible: dict[int, torch.Tensor] = {}
-
-    def load_scene(self, data: Path | None) -> SceneData:
-        raise NotImplementedError(f"{type(self).__name__} must implement load_scene()")
 
     @property
     def scene_name(self) -> str:
@@ -141,9 +136,29 @@ class DataManager:
         self._queue = list(state["queue"])
 
 
+def check_scene(scene: SceneData, parser: str) -> None:
+    """What every parser must return: one image per name and camera, each camera the size of the images (so a
+    parser that forgot to downscale, or to rescale its intrinsics, fails here rather than in the renderer)."""
+    num = len(scene.image_names)
+    if scene.images.dim() != 4 or len(scene.images) != num or len(scene.cameras) != num:
+        raise ValueError(f"{parser} returned {len(scene.image_names)} image names, images of shape "
+                         f"{tuple(scene.images.shape)} and {len(scene.cameras)} cameras; a DataParser returns one "
+                         "[H, W, 3] image and one camera per name")
+    height, width = scene.images.shape[1:3]
+    for cam in scene.cameras:
+        if (cam.width, cam.height) != (width, height):
+            raise ValueError(f"{parser} returned {width}x{height} images but camera '{cam.name}' is "
+                             f"{cam.width}x{cam.height}; a DataParser returns the scene at 1/downscale_factor with "
+                             "the intrinsics rescaled (uw3dgs.data.downscale.downscale_scene does both)")
+
+
 @dataclass(frozen=True)
 class AutoDataManagerConfig(DataManagerConfig):
     """Pick the datamanager from `--data`: the built-in synthetic scene without it, else the layout found."""
+
+    def setup(self, **kwargs: Any) -> Any:
+        """The datamanager of the config `resolve` picks (the trainer resolves first, to record the choice)."""
+        return self.resolve(kwargs.get("data")).setup(**kwargs)
 
     def resolve(self, data: Path | None) -> DataManagerConfig:
         from uw3dgs.registry import DATAMANAGERS

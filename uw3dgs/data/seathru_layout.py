@@ -13,14 +13,14 @@ choice between the two pose sources when both are present, and the synthetic sce
 Pose sources (`poses`): 'colmap' (sparse/0/images.bin), 'llff' (poses_bounds.npy), or 'auto': the only
 one present; when both are present and agree, COLMAP's; when they disagree, the one under which the
 coloured SfM points land on pixels of their own colour (clearly better, or an error asking to choose).
-The public IUI3-RedSea copy needs this: its images.bin holds the transposes of the rotations of
-poses_bounds.npy, and only the LLFF poses fit the images (docs/datasets.md has the measurements).
+A model written with camera-to-world rotations where COLMAP expects world-to-camera ones is detected and
+named ("transposes"): an earlier copy of IUI3-RedSea had such an images.bin, and only the LLFF poses fit its
+images (docs/datasets.md has the measurements; the current copy's two sources agree).
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
@@ -38,6 +38,7 @@ from uw3dgs.data.colmap_dataset import (
     z_bounds_from_points,
 )
 from uw3dgs.data.scene import GroundTruth, SceneData
+from uw3dgs.utils.console import warn
 from uw3dgs.utils.images import image_size, read_image
 
 IMAGE_DIRS = ("Images_wb", "images_wb")
@@ -202,10 +203,6 @@ def _with_poses(scene: SceneData, viewmats: np.ndarray, z_bounds: np.ndarray) ->
     return replace(scene, cameras=cameras, near=near, far=far)
 
 
-def _warn(message: str) -> None:
-    print(f"uw3dgs: warning: {message}", file=sys.stderr)
-
-
 def choose_poses(scene: SceneData, model: ColmapModel, llff: LlffPoses, poses: PoseSource) -> SceneData:
     """`scene` was loaded with the COLMAP poses; switch to the LLFF ones if `poses` (or 'auto') says so."""
     comparison = compare_poses(model.viewmats, llff.viewmats)
@@ -217,10 +214,10 @@ def choose_poses(scene: SceneData, model: ColmapModel, llff: LlffPoses, poses: P
     points_z = z_bounds_from_points(model.points, model.viewmats, np.stack([c.K.double().numpy()
                                     for c in scene.cameras]), [(c.width, c.height) for c in scene.cameras])
     if poses == "llff":
-        _warn(f"{disagreement}; using {llff.path.name} (--datamanager.poses llff)")
+        warn(f"{disagreement}; using {llff.path.name} (--datamanager.poses llff)")
         return _with_poses(scene, llff.viewmats, llff.z_bounds)
     if poses == "colmap":
-        _warn(f"{disagreement}; using {colmap_name} (--datamanager.poses colmap), near/far from its points")
+        warn(f"{disagreement}; using {colmap_name} (--datamanager.poses colmap), near/far from its points")
         return _with_poses(scene, model.viewmats, points_z)
     colmap_err, llff_err = point_color_errors(scene, model.viewmats), point_color_errors(scene, llff.viewmats)
     seen = ~(np.isnan(colmap_err) | np.isnan(llff_err))
@@ -232,10 +229,10 @@ def choose_poses(scene: SceneData, model: ColmapModel, llff: LlffPoses, poses: P
     score = (f"mean point colour error {lf:.1f}/255 with {llff.path.name} vs {c:.1f}/255 with "
              f"{model.images_file.name}; {llff.path.name} better in {llff_wins}/{seen.sum()} views")
     if lf < (1 - CLEARLY_BETTER) * c and llff_wins >= 2 * seen.sum() / 3:
-        _warn(f"{disagreement}. Using {llff.path.name} ({score}); --datamanager.poses colmap overrides")
+        warn(f"{disagreement}. Using {llff.path.name} ({score}); --datamanager.poses colmap overrides")
         return _with_poses(scene, llff.viewmats, llff.z_bounds)
     if c < (1 - CLEARLY_BETTER) * lf and llff_wins <= seen.sum() / 3:
-        _warn(f"{disagreement}. Using {colmap_name} ({score}); --datamanager.poses llff overrides")
+        warn(f"{disagreement}. Using {colmap_name} ({score}); --datamanager.poses llff overrides")
         return _with_poses(scene, model.viewmats, points_z)
     raise DatasetError(f"{disagreement}, and neither fits the images clearly better ({score}): choose with "
                        "--datamanager.poses colmap or --datamanager.poses llff, or fix the files")

@@ -23,6 +23,7 @@ from typing import Literal
 import pycolmap
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
+from uw3dgs.utils.console import CONSOLE, info, warn
 from uw3dgs.utils.images import image_size
 
 Matcher = Literal["exhaustive", "sequential"]
@@ -106,7 +107,7 @@ def quiet_colmap(verbose: bool = False) -> Iterator[None]:
 
 def _progress(enabled: bool) -> Progress:
     return Progress(SpinnerColumn(), TextColumn("[progress.description]{task.description}"), BarColumn(),
-                    MofNCompleteColumn(), TimeElapsedColumn(), disable=not enabled, transient=False)
+                    MofNCompleteColumn(), TimeElapsedColumn(), console=CONSOLE, disable=not enabled, transient=False)
 
 
 def _group_by_camera(names: Sequence[str], camera: FixedCamera | Mapping[str, FixedCamera] | None,
@@ -336,13 +337,12 @@ def run_sfm(
                 break
     badness, _, best, why = min(tried, key=lambda item: item[:2])
     if badness > 1.0:
-        bar.console.print(f"[yellow]warning:[/yellow] structure from motion: {why} after {len(tried)} attempts; "
-                          "keeping the most consistent model")
+        warn(f"structure from motion: {why} after {len(tried)} attempts; keeping the most consistent model")
     shutil.rmtree(sparse_dir, ignore_errors=True)
     sparse_dir.mkdir(parents=True)
     best.write_binary(str(sparse_dir))
     shutil.rmtree(mapping_dir, ignore_errors=True)
     if progress:
-        bar.console.print(f"structure from motion: {best.num_reg_images()} of {len(names)} images registered, "
-                          f"{best.num_points3D()} points, {time.perf_counter() - start:.1f} s")
+        info(f"structure from motion: {best.num_reg_images()} of {len(names)} images registered, "
+             f"{best.num_points3D()} points, {time.perf_counter() - start:.1f} s")
     return sparse_dir

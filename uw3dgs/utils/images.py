@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -11,6 +10,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from uw3dgs.utils.io import atomic_file
 from uw3dgs.utils.visualize import ArrayLike, to_uint8
 
 # Pillow modes of 16-bit grayscale PNGs ("I" in older Pillow releases, "I;16*" in newer ones).
@@ -81,14 +81,5 @@ def write_image(path: str | os.PathLike, img: ArrayLike) -> None:
     pixels = to_uint8(img)
     if pixels.ndim != 3 or pixels.shape[-1] != 3:
         raise ValueError(f"write_image expects an [H, W, 3] image, got shape {pixels.shape}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with open(tmp, "xb") as f:  # regular open() so the file gets the umask's permissions
-            Image.fromarray(pixels).save(f, format="PNG")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "wb", fsync=True) as f:
+        Image.fromarray(pixels).save(f, format="PNG")
