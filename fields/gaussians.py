@@ -41,7 +41,12 @@ def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor
 
 
 class GaussianField(nn.Module):
-    """N anisotropic Gaussians; parameters are stored unconstrained (log-scale, logit opacity)."""
+    """N anisotropic Gaussians; parameters are stored unconstrained (log-scale, logit opacity).
+
+    Built as `config.setup(points=[P, 3], colors=[P, 3] in [0, 1])`: one Gaussian per initial point."""
+
+    param_names = PARAM_NAMES
+    """The per-Gaussian parameters (each [N, ...]), in the order density control and checkpoints use."""
 
     def __init__(self, config: GaussianFieldConfig, points: Tensor, colors: Tensor):
         super().__init__()
@@ -100,4 +105,4 @@ class GaussianField(nn.Module):
                 setattr(self, name, nn.Parameter(torch.empty_like(state_dict[prefix + name])))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-field_spec = FieldSpec("gaussians", "3D Gaussians with SH colour (3DGS)", GaussianFieldConfig())
+field_spec = FieldSpec("gaussians", "3D Gaussians with SH colour (3DGS)", GaussianFieldConfig(), kind="gaussians")

@@ -1,5 +1,9 @@
-"""The learnable underwater medium: attenuation beta_D and backscatter beta_B as RGB fields over the
-scene box, each a TensoRF vector-matrix (VM) decomposition, and the veiling light B_inf.
+"""The learnable underwater medium: attenuation beta_D, backscatter beta_B and the veiling light B_inf.
+
+Two fields are registered (kind "medium", chosen with `--model.medium-field NAME`):
+- `medium-grid` (`MediumGrid`, the paper's): beta_D and beta_B as RGB fields over the scene box, each a
+  TensoRF vector-matrix (VM) decomposition read by trilinear interpolation;
+- `medium-homogeneous` (`HomogeneousMedium`): one beta_D, beta_B per channel everywhere (SeaSplat's medium).
 
 Image formation (Akkaynak & Treibitz 2018, the paper's Eq. scattering_4), per pixel with range z:
     I_UW = I_UR exp(-beta_D z) + B_inf (1 - exp(-beta_B z)).
@@ -30,23 +34,17 @@ def softplus_inverse(y: Tensor) -> Tensor:
 
 
 @dataclass(frozen=True)
-class MediumGridConfig(InstantiateConfig):
-    _target: Target = target(lambda: MediumGrid)
-    resolution: int = 64
-    """Grid size G per axis of every plane and line."""
-    components: int = 16
-    """VM components R per mode."""
+class MediumFieldConfig(InstantiateConfig):
+    """Knobs every medium field has: its starting values and how training starts it from the data.
+
+    `setup(points=[P, 3], camera_centers=[C, 3])` builds the field (world units: the initial points and the
+    training cameras, which a spatial field uses to place its box)."""
+
     beta_prior: RGB = (0.1, 0.15, 0.2)
     """Initial value of beta_D and beta_B (R, G, B) per dataset unit, and L_beta's pull target with
     init 'prior' (with 'estimate' the estimate replaces it as both)."""
     b_inf_init: RGB = (0.5, 0.5, 0.5)
     """Initial veiling light B_inf (RGB)."""
-    init_std: float = 0.1
-    """Standard deviation of the random VM factors (their basis starts at zero, so beta starts flat)."""
-    ray_samples: int = 1
-    """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
-    box_padding: float = 0.1
-    """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
     learn_beta: bool = True
     """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
     init: Literal["prior", "estimate", "truth"] = "estimate"
@@ -72,6 +70,30 @@ class MediumGridConfig(InstantiateConfig):
     training camera, the strict protocol that uses no test-view pose."""
 
 
+@dataclass(frozen=True)
+class MediumGridConfig(MediumFieldConfig):
+    """`medium-grid`: beta_D and beta_B as TensoRF VM-decomposed RGB grids over the scene box (the paper)."""
+
+    _target: Target = target(lambda: MediumGrid.around)
+    resolution: int = 64
+    """Grid size G per axis of every plane and line."""
+    components: int = 16
+    """VM components R per mode."""
+    init_std: float = 0.1
+    """Standard deviation of the random VM factors (their basis starts at zero, so beta starts flat)."""
+    ray_samples: int = 1
+    """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
+    box_padding: float = 0.1
+    """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
+
+
+@dataclass(frozen=True)
+class HomogeneousMediumConfig(MediumFieldConfig):
+    """`medium-homogeneous`: one beta_D, beta_B and B_inf per channel for the whole scene (SeaSplat's medium)."""
+
+    _target: Target = target(lambda: HomogeneousMedium)
+
+
 class VMField(nn.Module):
     """An RGB field f(x) = softplus(W [plane_m(x) line_m(x)]_m + b) over [-1, 1]^3 (trilinear reads)."""
 
@@ -87,7 +109,7 @@ class VMField(nn.Module):
         """[N, 3] points in [-1, 1] -> [3R, N] products of plane (bilinear) and line (linear) reads.
 
         Channel-major, as grid_sample returns them: transposing to [N, 3R] before the basis product made the
-        products and their backward strided, 1.3x slower fwd + bwd on CPU at 20k points (benchmarks/medium_field.py)."""
+        products and their backward strided, and slower (docs/performance.md, benchmarks/speed/medium_field.py)."""
         feats = []
         for m, ((a, b), c) in enumerate(VM_MODES):
             # grid_sample's grid is (x, y) = (width index, height index): planes are [R, G(axis a), G(axis b)]
@@ -115,28 +137,78 @@ class VMField(nn.Module):
         return self.planes.square().sum() + self.lines.square().sum()
 
 
-class MediumGrid(nn.Module):
-    """beta_D, beta_B fields over the scene box, B_inf, and the image formation they define."""
+class MediumField(nn.Module):
+    """What every medium field is: beta_D, beta_B (RGB, >= 0, per dataset unit) readable anywhere in the
+    world, and the veiling light B_inf [3]. Subclasses implement `betas` and `beta_parameters`."""
 
-    def __init__(self, config: MediumGridConfig, box_min: Tensor, box_max: Tensor):
+    def __init__(self, config: MediumFieldConfig):
         super().__init__()
         self.config = config
+        self.b_inf = nn.Parameter(torch.tensor(config.b_inf_init, dtype=torch.float32))
+        # L_beta's pull targets: beta_prior, or the data's estimate once `set_prior` is called
+        self.register_buffer("prior_d", torch.tensor(config.beta_prior, dtype=torch.float32))
+        self.register_buffer("prior_b", torch.tensor(config.beta_prior, dtype=torch.float32))
+
+    def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(beta_D, beta_B) at world points x [N, 3], each [N, 3]."""
+        raise NotImplementedError
+
+    def beta_parameters(self) -> list[nn.Parameter]:
+        """The parameters that shape beta_D and beta_B (the optimizer group 'medium_beta')."""
+        raise NotImplementedError
+
+    def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
+        """Make the medium the same everywhere: beta_D, beta_B [3] per dataset unit (None keeps that field),
+        B_inf [3]."""
+        raise NotImplementedError
+
+    def factor_penalty(self) -> Tensor | None:
+        """The field's own regularizer, added to L_beta's pull (None: nothing to add)."""
+        return None
+
+    def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean beta_D, beta_B [P, 3] along rays origin [3] + t dirs [P, 3], t in [0, ranges [P]] (world units)."""
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def set_prior(self, beta_d: Tensor, beta_b: Tensor) -> None:
+        """Make L_beta pull beta_D and beta_B toward these RGB values [3] instead of beta_prior."""
+        self.prior_d.copy_(beta_d.to(self.prior_d))
+        self.prior_b.copy_(beta_b.to(self.prior_b))
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        groups = {"medium_b_inf": [self.b_inf]}
+        if self.config.learn_beta:
+            groups["medium_beta"] = self.beta_parameters()
+        return groups
+
+    def regularizer(self, points: Tensor, weights: Tensor | None = None) -> Tensor:
+        """L_beta (scalar): pull of both fields toward their priors at `points` [N, 3], weighted per point by
+        `weights` [N] (a mean over the points), plus the field's own penalty."""
+        beta_d, beta_b = self.betas(points)
+        dev = (beta_d - self.prior_d).square().sum(-1) + (beta_b - self.prior_b).square().sum(-1)
+        pull = dev.mean() if weights is None else (weights * dev).mean()
+        penalty = self.factor_penalty()
+        return pull if penalty is None else pull + penalty
+
+
+class MediumGrid(MediumField):
+    """beta_D, beta_B as VM fields over the box [box_min, box_max] (world units), and B_inf."""
+
+    def __init__(self, config: MediumGridConfig, box_min: Tensor, box_max: Tensor):
+        super().__init__(config)
         self.register_buffer("box_min", box_min.float().clone())
         self.register_buffer("box_max", box_max.float().clone())
         args = (config.resolution, config.components, config.beta_prior, config.init_std)
         self.beta_d = VMField(*args)
         self.beta_b = VMField(*args)
-        self.b_inf = nn.Parameter(torch.tensor(config.b_inf_init, dtype=torch.float32))
-        # L_beta's pull targets: beta_prior, or the data's estimate once `set_prior` is called
-        self.register_buffer("prior_d", torch.tensor(config.beta_prior, dtype=torch.float32))
-        self.register_buffer("prior_b", torch.tensor(config.beta_prior, dtype=torch.float32))
         if not config.learn_beta:
             self.beta_d.requires_grad_(False)
             self.beta_b.requires_grad_(False)
 
     @classmethod
     def around(cls, config: MediumGridConfig, points: Tensor, camera_centers: Tensor) -> MediumGrid:
-        """A medium whose box holds the cameras and (robustly) the initial points."""
+        """A medium whose box holds the cameras [C, 3] and (robustly: 1st-99th percentile) the points [P, 3]."""
         lo = torch.quantile(points.float(), 0.01, dim=0) if len(points) else camera_centers.min(0).values
         hi = torch.quantile(points.float(), 0.99, dim=0) if len(points) else camera_centers.max(0).values
         lo = torch.minimum(lo, camera_centers.min(0).values)
@@ -146,48 +218,63 @@ class MediumGrid(nn.Module):
 
     @torch.no_grad()
     def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
-        """Make the medium (beta_D, beta_B per dataset unit, B_inf) the same everywhere: the VM factors add
-        nothing while their basis is zero, so each field's bias alone sets its value. None keeps a field."""
+        # the VM factors add nothing while their basis is zero, so each field's bias alone sets its value
         for field_, beta in ((self.beta_d, beta_d), (self.beta_b, beta_b)):
             if beta is not None:
                 field_.basis.zero_()
                 field_.bias.copy_(softplus_inverse(beta.to(field_.bias).clamp_min(1e-4)))
         self.b_inf.copy_(b_inf.to(self.b_inf))
 
-    @torch.no_grad()
-    def set_prior(self, beta_d: Tensor, beta_b: Tensor) -> None:
-        """Make L_beta pull beta_D and beta_B toward these RGB values instead of beta_prior."""
-        self.prior_d.copy_(beta_d.to(self.prior_d))
-        self.prior_b.copy_(beta_b.to(self.prior_b))
+    def beta_parameters(self) -> list[nn.Parameter]:
+        return [*self.beta_d.parameters(), *self.beta_b.parameters()]
 
-    def param_groups(self) -> dict[str, list[nn.Parameter]]:
-        groups = {"medium_b_inf": [self.b_inf]}
-        if self.config.learn_beta:
-            groups["medium_beta"] = [*self.beta_d.parameters(), *self.beta_b.parameters()]
-        return groups
+    def factor_penalty(self) -> Tensor:
+        """0.001 x the squared norms of both fields' VM factors (the paper's L_beta term)."""
+        return 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
 
     def normalize(self, x: Tensor) -> Tensor:
+        """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""
         return ((x - self.box_min) / (self.box_max - self.box_min) * 2 - 1).clamp(-1, 1)
 
     def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """(beta_D, beta_B) at world points [N, 3], each [N, 3]."""
         u = self.normalize(x)
         return self.beta_d(u), self.beta_b(u)
 
     def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean of beta_D and beta_B over S midpoint samples along rays origin + t dirs, t in [0, range]."""
+        """The mean over S = ray_samples midpoint samples (the Beer-Lambert integral for a varying medium)."""
         s = self.config.ray_samples
         t = (torch.arange(s, device=dirs.device, dtype=dirs.dtype) + 0.5) / s  # [S]
         points = origin + dirs[:, None, :] * (ranges[:, None, None] * t[None, :, None])  # [P, S, 3]
         beta_d, beta_b = self.betas(points.reshape(-1, 3))
         return beta_d.view(-1, s, 3).mean(dim=1), beta_b.view(-1, s, 3).mean(dim=1)
 
-    def regularizer(self, points: Tensor, weights: Tensor | None = None) -> Tensor:
-        """L_beta: weighted pull of both fields toward their priors at `points`, plus 0.001 x VM factor norms."""
-        beta_d, beta_b = self.betas(points)
-        dev = (beta_d - self.prior_d).square().sum(-1) + (beta_b - self.prior_b).square().sum(-1)
-        pull = dev.mean() if weights is None else (weights * dev).mean()
-        return pull + 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
+
+class HomogeneousMedium(MediumField):
+    """One beta_D, beta_B [3] (softplus of a free parameter, so >= 0) and B_inf [3] everywhere."""
+
+    def __init__(self, config: HomogeneousMediumConfig, points: Tensor | None = None,
+                 camera_centers: Tensor | None = None):
+        super().__init__(config)  # a homogeneous medium needs no box: points and cameras are not used
+        prior = softplus_inverse(torch.tensor(config.beta_prior, dtype=torch.float32))
+        self.beta_d_raw = nn.Parameter(prior.clone(), requires_grad=config.learn_beta)
+        self.beta_b_raw = nn.Parameter(prior.clone(), requires_grad=config.learn_beta)
+
+    def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        shape = (x.shape[0], 3)
+        return F.softplus(self.beta_d_raw).expand(shape), F.softplus(self.beta_b_raw).expand(shape)
+
+    def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:
+        return self.betas(dirs)  # the same along every ray
+
+    def beta_parameters(self) -> list[nn.Parameter]:
+        return [self.beta_d_raw, self.beta_b_raw]
+
+    @torch.no_grad()
+    def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
+        for raw, beta in ((self.beta_d_raw, beta_d), (self.beta_b_raw, beta_b)):
+            if beta is not None:
+                raw.copy_(softplus_inverse(beta.to(raw).clamp_min(1e-4)))
+        self.b_inf.copy_(b_inf.to(self.b_inf))
 
 
 def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, beta_d: Tensor, beta_b: Tensor,
@@ -208,5 +295,7 @@ def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, beta_
     return {"uwi": radiance * attenuation + backscatter, "attenuation": attenuation, "backscatter": backscatter}
 
 
-field_spec = FieldSpec("medium-grid", "Underwater medium: beta_D, beta_B as VM-decomposed RGB grids, and B_inf",
-                       MediumGridConfig())
+grid_spec = FieldSpec("medium-grid", "Underwater medium: beta_D, beta_B as VM-decomposed RGB grids, and B_inf (the "
+                      "paper)", MediumGridConfig(), kind="medium")
+homogeneous_spec = FieldSpec("medium-homogeneous", "Underwater medium: one beta_D, beta_B and B_inf per channel "
+                             "(SeaSplat-style)", HomogeneousMediumConfig(), kind="medium")

@@ -15,14 +15,14 @@ as Sea-thru does (Akkaynak & Treibitz 2019):
 
 Why not one joint fit of everything: with J_p free, (B_inf, beta_B, J_p) trade off along a flat valley
 (a little less backscatter, a little brighter J_p), and a joint fit drifts to almost no backscatter
-(measured in the README: green and blue beta_B ~0.001-0.01 on IUI3-RedSea, a green URI). The dark
+(docs/methods/uw3dgs.md shows it on IUI3-RedSea: a green URI). The dark
 pixels break the tie, with the one assumption that the darkest surfaces in view are nearly black.
 
 Why it exists: jointly learning the medium and the Gaussians from the constant beta_prior lets the
 Gaussians' colours (initialised from underwater points) absorb the water first, and the photometric loss
 is then almost flat along the same valley; the medium stays near where it started. Starting from this
-estimate, and from de-hazed point colours, puts the model in the right valley (README, "UW-3DGS on the
-synthetic scene"). Occlusions and outlier points give wrong observations; the beta_D fit is L1.
+estimate, and from de-hazed point colours, puts the model in the right valley (docs/results.md).
+Occlusions and outlier points give wrong observations; the beta_D fit is L1.
 """
 
 from __future__ import annotations
@@ -80,7 +80,7 @@ def open_water_color(points: Tensor, cameras: list[Camera], images: list[Tensor]
     Each view is cut into square cells, `cells` across its width. A cell that none of the `points` [P, 3]
     projects into holds nothing SfM could match in any view: open water, whose colour is the veiling light
     B_inf alone (the median shrugs off the odd textureless patch of seabed). It is the only direct view of
-    B_inf: from surface points alone B_inf and beta_B trade off along a flat valley (README). None when the
+    B_inf: from surface points alone B_inf and beta_B trade off along a flat valley (above). None when the
     empty cells hold less than `min_share` of all pixels (no open water in view).
     """
     water, total = [], 0

@@ -3,32 +3,38 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
 
 from uw3dgs.cameras import Camera
-from uw3dgs.config import Target, target
+from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.densification import DensificationConfig, Densifier
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import RasterOutput, RasterSettings, rasterize
+from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 from uw3dgs.utils.visualize import depth_to_image
+
+COVERAGE_EPS = 1e-4
+"""Pixels whose alpha is at most this show no surface: their range is the scene's far bound (open water)."""
 
 
 @dataclass(frozen=True)
 class GaussianSplattingModelConfig(ModelConfig):
     _target: Target = target(lambda: GaussianSplattingModel)
-    gaussians: GaussianFieldConfig = field(default_factory=GaussianFieldConfig)
+    gaussian_field: str = "gaussians"
+    """Registry name of the Gaussian field (entry points `uw3dgs.fields` of kind 'gaussians'); its knobs are
+    --model.gaussians.*."""
+    gaussians: InstantiateConfig = field(default_factory=GaussianFieldConfig)
     densification: DensificationConfig = field(default_factory=DensificationConfig)
     raster: RasterSettings = field(default_factory=RasterSettings)
     ssim_lambda: float = 0.2
@@ -36,12 +42,15 @@ class GaussianSplattingModelConfig(ModelConfig):
     background: Literal["black", "white", "random"] = "black"
     """Colour behind the Gaussians; 'random' draws one per training step (evaluation uses black)."""
 
+    field_slots: ClassVar[dict[str, tuple[str, str]]] = {"gaussian_field": ("gaussians", "gaussians")}
+
 
 class GaussianSplattingModel(Model):
     config: GaussianSplattingModelConfig
 
     def __init__(self, config: GaussianSplattingModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__(config, scene, train_indices)
+        self.far_range = float(scene.far)
         self.gaussians: GaussianField = config.gaussians.setup(points=scene.points, colors=scene.point_colors)
 
     @property
@@ -52,32 +61,40 @@ class GaussianSplattingModel(Model):
         return self.gaussians.param_groups()
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
-        return [ShDegreeSchedule(self.gaussians),
-                Densifier(self.config.densification, self.gaussians, optimizers, self.scene_extent,
-                          max_num_iterations)]
+        strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
+        return [ShDegreeSchedule(self.gaussians), DensityControl(strategy, self.gaussians, optimizers)]
 
     def background(self, device: torch.device) -> Tensor:
         if self.config.background == "random" and self.training:
             return torch.rand(3, device=device)
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
-    def render_gaussians(self, camera: Camera) -> RasterOutput:
-        """Rasterize the Gaussians' view-dependent colours; the 2D means keep their gradient for densification."""
+    def render(self, camera: Camera) -> dict[str, Any]:
+        """Rasterize the Gaussians' view-dependent colours seen from `camera`, no background:
+        'radiance' [H, W, 3] = sum_i w_i c_i; 'alpha' [H, W] coverage; 'depth' [H, W] expected camera-space z of
+        the covered part (0 where uncovered); 'range' [H, W] the same along the ray from the camera centre
+        (world units; the scene's far bound where uncovered: open water); 'means2d' [N, 2] pixel centres
+        (their gradient is kept for density control while training); 'radii' [N] pixels, 0 = not visible."""
         means, scales, quats, opacities = self.gaussians.activated()
         colors = self.gaussians.colors(camera.center)
         out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
         if self.training and out.means2d.requires_grad:
-            out.means2d.retain_grad()  # densification reads the screen-space gradient
-        return out
+            out.means2d.retain_grad()  # density control reads the screen-space gradient
+        covered = out.alpha > COVERAGE_EPS
+        depth = torch.where(covered, out.depth / out.alpha.clamp_min(COVERAGE_EPS), torch.zeros_like(out.depth))
+        ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
+        return {"radiance": out.render, "alpha": out.alpha, "depth": depth, "range": ranges,
+                "means2d": out.means2d, "radii": out.radii}
+
+    def over_background(self, radiance: Tensor, alpha: Tensor) -> Tensor:
+        """`radiance` [H, W, 3] composited over the background colour where `alpha` [H, W] leaves it visible."""
+        return radiance + (1.0 - alpha[..., None]) * self.background(alpha.device)
 
     def get_outputs(self, camera: Camera) -> dict[str, Any]:
-        out = self.render_gaussians(camera)
-        alpha = out.alpha[..., None]
-        rgb = out.render + (1.0 - alpha) * self.background(out.alpha.device)
-        depth = out.depth / out.alpha.clamp_min(1e-8)  # expected camera-space z of the covered part
-        return {"rgb": rgb, "alpha": out.alpha, "depth": depth,
-                "range": depth * camera.ray_norms(), "means2d": out.means2d, "radii": out.radii,
-                "raster": out, "image_size": (camera.width, camera.height)}
+        """`render`'s outputs with 'rgb' [H, W, 3] = the radiance over the background in place of 'radiance'."""
+        outputs = self.render(camera)
+        outputs["rgb"] = self.over_background(outputs.pop("radiance"), outputs["alpha"])
+        return outputs
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
         """Adds `depth_abs_rel` (rendered against true range) where the dataset has true ranges."""
@@ -100,6 +117,33 @@ class GaussianSplattingModel(Model):
     def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
         return {"gt": batch["image"], "render": outputs["rgb"].clamp(0, 1),
                 "depth": depth_to_image(outputs["range"], outputs["alpha"])}
+
+
+class DensityControl(TrainingCallback):
+    """Runs a density-control strategy in the training loop; its statistics are checkpointed."""
+
+    name = "densification"
+
+    def __init__(self, strategy: DefaultStrategy, gaussians: GaussianField, optimizers: Optimizers):
+        self.strategy = strategy
+        self.gaussians = gaussians
+        self.optimizers = optimizers
+        self.state = strategy.initialize_state(gaussians)
+
+    def after_backward(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
+        camera = batch["camera"]
+        self.strategy.step_post_backward(self.state, step, outputs["means2d"], outputs["radii"],
+                                         (camera.width, camera.height))
+
+    def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
+        self.strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step)
+
+    def state_dict(self) -> dict[str, Any]:
+        return dict(self.state)
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        device = self.gaussians.means.device
+        self.state = {name: value.clone().to(device) for name, value in state.items()}
 
 
 class ShDegreeSchedule(TrainingCallback):

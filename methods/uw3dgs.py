@@ -9,9 +9,8 @@ what L_beta and L_z reduce to without the PAUP branch.
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -20,23 +19,26 @@ from uw3dgs.cameras import Camera
 from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
-from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
-from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.densification import DensificationConfig
-from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, form_underwater_image
+from uw3dgs.engine.optimizers import ParamGroupConfig
+from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
 from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render.sh import rgb_to_sh
+from uw3dgs.strategy import DensificationConfig
+from uw3dgs.utils.console import info
 from uw3dgs.utils.visualize import depth_to_image
 
 
 @dataclass(frozen=True)
 class UW3DGSModelConfig(GaussianSplattingModelConfig):
     _target: Target = target(lambda: UW3DGSModel)
-    medium: MediumGridConfig = field(default_factory=MediumGridConfig)
+    medium_field: str = "medium-grid"
+    """Registry name of the medium field (entry points `uw3dgs.fields` of kind 'medium'): 'medium-grid' (VM grids,
+    the paper) or 'medium-homogeneous' (one value per channel); its knobs are --model.medium.*."""
+    medium: MediumFieldConfig = field(default_factory=MediumGridConfig)
     use_medium: bool = True
     """False renders plain 3DGS (the no-medium ablation): the Gaussians must explain the water themselves."""
     beta_loss_weight: float = 0.05
@@ -46,46 +48,43 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     depth_loss_weight: float = 0.05
     """Weight of L_z = mean_i (1 - U_i) |z(p_i) - zhat_i| over visible Gaussians, in units of the median depth."""
 
+    field_slots: ClassVar[dict[str, tuple[str, str]]] = {**GaussianSplattingModelConfig.field_slots,
+                                                         "medium_field": ("medium", "medium")}
+
 
 class UW3DGSModel(GaussianSplattingModel):
     config: UW3DGSModelConfig
 
     def __init__(self, config: UW3DGSModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__(config, scene, train_indices)
-        self.far_range = float(scene.far)
         self.dataset_scale = float(scene.dataset_scale)
-        self.medium: MediumGrid | None = None
+        self.medium: MediumField | None = None
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
-            self.medium = MediumGrid.around(config.medium, scene.points, centers)
-        # the estimate runs before the first training step, not here: a resumed run or a model rebuilt for
-        # uw-eval gets its medium from the checkpoint and must not pay for a fit it throws away
-        self._estimate_inputs = (scene, train_indices) if self.medium is not None and \
-            config.medium.init in ("estimate", "truth") else None
-        if self._estimate_inputs is not None and config.medium.init == "truth" and \
-                (scene.gt is None or not scene.gt.medium):
-            raise ValueError("--model.medium.init truth needs a scene that knows its medium (gt/medium.json: the "
-                             "synthetic ones); use 'estimate' or 'prior'")
+            self.medium = config.medium.setup(points=scene.points, camera_centers=centers)
+            if config.medium.init == "truth" and (scene.gt is None or not scene.gt.medium):
+                raise ValueError("--model.medium.init truth needs a scene that knows its medium (gt/medium.json: "
+                                 "the synthetic ones); use 'estimate' or 'prior'")
 
-    def start_from_estimate(self) -> None:
-        """Medium from the initial points' colours across the training views (or the true one with init 'truth');
-        Gaussian colours de-hazed with it."""
-        if self._estimate_inputs is None or self.medium is None:
-            return
-        (scene, train_indices), self._estimate_inputs = self._estimate_inputs, None
+    def initialize_from_data(self, scene: SceneData, train_indices: list[int]) -> None:
+        """With init 'estimate' (or 'truth'), start the medium from the point-based estimate (or the true medium),
+        the Gaussians' colours de-hazed with it. Here, not in __init__: a resumed run or a model rebuilt for
+        uw-eval gets its medium from the checkpoint and must not pay for a fit it throws away."""
         mc = self.config.medium
+        if self.medium is None or mc.init == "prior":
+            return
         cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
         known, water = None, None
         if mc.init == "truth":
             known = scene.gt.medium_tensors()
-            print("uw3dgs: medium: the true one (gt/medium.json), an oracle for analysis", file=sys.stderr)
+            info("medium: the true one (gt/medium.json), an oracle for analysis")
         else:
             if mc.open_water_cells > 0:
                 water = open_water_color(scene.points.float(), cameras, images, mc.open_water_cells,
                                          mc.open_water_min_share)
             source = "fitted (no open water in view)" if water is None else \
                 f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
-            print(f"uw3dgs: medium estimate: B_inf {source}", file=sys.stderr)
+            info(f"medium estimate: B_inf {source}")
         estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
                                    b_inf=water, dark_bins=mc.dark_bins, dark_share=mc.dark_share,
                                    sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None,
@@ -95,13 +94,10 @@ class UW3DGSModel(GaussianSplattingModel):
                                     estimate.b_inf)
         if learned:  # with beta pinned at the prior, the estimate's de-hazed colours would not match it
             # L_beta then keeps the field near what the data says, not near a constant that may be far off
-            # (pulled toward beta_prior, red beta_D of the built-in scene drifted from 0.37 to 0.25; truth 0.40)
+            # (docs/methods/uw3dgs.md: pulled toward beta_prior, red beta_D drifts away from the truth)
             self.medium.set_prior(estimate.beta_d, estimate.beta_b)
             with torch.no_grad():
                 self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
-
-    def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
-        return [MediumEstimateStart(self), *super().get_training_callbacks(optimizers, max_num_iterations)]
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()
@@ -110,19 +106,16 @@ class UW3DGSModel(GaussianSplattingModel):
         return groups
 
     def get_outputs(self, camera: Camera) -> dict[str, Any]:
-        out = self.render_gaussians(camera)
-        covered = out.alpha > 1e-4
-        depth = torch.where(covered, out.depth / out.alpha.clamp_min(1e-4), torch.zeros_like(out.depth))
-        ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
-        outputs: dict[str, Any] = {
-            "uri": out.render, "alpha": out.alpha, "depth": depth, "range": ranges, "means2d": out.means2d,
-            "radii": out.radii, "raster": out, "image_size": (camera.width, camera.height),
-            "camera_center": camera.center}
+        """`render`'s outputs with the water: 'uri' [H, W, 3] the water-free radiance (the rendered one), 'rgb'
+        [H, W, 3] the underwater image formed from it; with a medium also 'attenuation', 'backscatter', 'beta_d',
+        'beta_b' [H, W, 3] (the betas ray-averaged per pixel, per dataset unit)."""
+        outputs = self.render(camera)
+        uri = outputs["uri"] = outputs.pop("radiance")
         if self.medium is None:
-            outputs["rgb"] = out.render + (1.0 - out.alpha[..., None]) * self.background(out.alpha.device)
+            outputs["rgb"] = self.over_background(uri, outputs["alpha"])
             return outputs
-        beta_d, beta_b = self.ray_betas(camera, ranges)
-        formed = form_underwater_image(out.render, out.alpha, ranges, beta_d, beta_b, self.medium.b_inf,
+        beta_d, beta_b = self.ray_betas(camera, outputs["range"])
+        formed = form_underwater_image(uri, outputs["alpha"], outputs["range"], beta_d, beta_b, self.medium.b_inf,
                                        self.dataset_scale)
         outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
                        beta_d=beta_d, beta_b=beta_b)
@@ -133,19 +126,19 @@ class UW3DGSModel(GaussianSplattingModel):
         dirs = camera.ray_directions().reshape(-1, 3)
         beta_d, beta_b = self.medium.ray_betas(camera.center.to(dirs.dtype), dirs, ranges.reshape(-1))
         shape = (*ranges.shape, 3)
-        return beta_d.view(shape), beta_b.view(shape)
+        return beta_d.reshape(shape), beta_b.reshape(shape)
 
-    def depth_consistency(self, outputs: dict[str, Any]) -> Tensor:
-        """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|."""
+    def depth_consistency(self, outputs: dict[str, Any], camera: Camera) -> Tensor:
+        """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|,
+        in units of the view's median rendered range (a scalar)."""
         visible = outputs["radii"] > 0
-        width, height = outputs["image_size"]
         pix = outputs["means2d"][visible].detach().floor().long()
-        inside = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+        inside = (pix[:, 0] >= 0) & (pix[:, 0] < camera.width) & (pix[:, 1] >= 0) & (pix[:, 1] < camera.height)
         if not bool(inside.any()):
             return outputs["range"].sum() * 0.0
         pix = pix[inside]
         rendered = outputs["range"][pix[:, 1], pix[:, 0]]
-        own = (self.gaussians.means[visible][inside] - outputs["camera_center"]).norm(dim=-1)
+        own = (self.gaussians.means[visible][inside] - camera.center).norm(dim=-1)
         scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
         return ((rendered - own).abs() / scale).mean()
 
@@ -158,7 +151,7 @@ class UW3DGSModel(GaussianSplattingModel):
                 means = means[torch.randint(len(means), (c.beta_loss_samples,), device=means.device)]
             losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means)
         if c.depth_loss_weight > 0:
-            losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs)
+            losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
         return losses
 
     def medium_summary(self) -> dict[str, Tensor]:
@@ -216,19 +209,6 @@ class UW3DGSModel(GaussianSplattingModel):
         if "clean_image" in batch:
             images["gt_clean"] = batch["clean_image"]
         return images
-
-
-class MediumEstimateStart(TrainingCallback):
-    """Before step 1 of a fresh run (a resumed run starts later), start from the point-based medium estimate."""
-
-    name = "medium_estimate_start"
-
-    def __init__(self, model: UW3DGSModel):
-        self.model = model
-
-    def before_step(self, step: int) -> None:
-        if step == 1:
-            self.model.start_from_estimate()
 
 
 def uw3dgs_optimizers() -> dict[str, ParamGroupConfig]:

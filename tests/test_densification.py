@@ -7,8 +7,8 @@ import math
 import torch
 
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.densification import DensificationConfig, Densifier
 from uw3dgs.fields.gaussians import PARAM_NAMES, GaussianField, GaussianFieldConfig
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 
 
 def make(extent: float = 1.0, **config):
@@ -23,16 +23,16 @@ def make(extent: float = 1.0, **config):
     # one real Adam step so the moments exist and must be carried along
     sum((getattr(field, n) ** 2).sum() for n in PARAM_NAMES).backward()
     optimizers.step()
-    densifier = Densifier(DensificationConfig(**config), field, optimizers, extent, 30000)
-    return field, optimizers, densifier
+    strategy = DefaultStrategy(DensificationConfig(**config), extent, 30000)
+    return field, optimizers, strategy, strategy.initialize_state(field)
 
 
 def test_clone_split_prune_and_adam_state_follow():
-    field, optimizers, densifier = make()
-    densifier.grad_accum[:] = torch.tensor([1.0, 1.0, 0.0, 0.0])
-    densifier.visible_count[:] = 1
+    field, optimizers, strategy, state = make()
+    state["grad_accum"][:] = torch.tensor([1.0, 1.0, 0.0, 0.0])
+    state["visible_count"][:] = 1
     before = {n: getattr(field, n).detach().clone() for n in PARAM_NAMES}
-    densifier.densify_and_prune(step=500)
+    strategy.densify_and_prune(field, optimizers, state, step=500)
     # 4 + 1 clone + 2 split children - 1 split parent - 1 transparent
     assert field.num_gaussians == 5
     torch.testing.assert_close(field.means[:2], before["means"][[0, 3]])  # survivors keep their order
@@ -41,10 +41,10 @@ def test_clone_split_prune_and_adam_state_follow():
     torch.testing.assert_close(children, before["scales"][1].exp().expand(2, 3) / 1.6)
     for name in PARAM_NAMES:
         param = getattr(field, name)
-        state = optimizers.optimizers[name].state[param]
-        assert state["exp_avg"].shape == param.shape, name
+        adam = optimizers.optimizers[name].state[param]
+        assert adam["exp_avg"].shape == param.shape, name
         assert optimizers.optimizers[name].param_groups[0]["params"][0] is param
-    assert densifier.grad_accum.shape == (5,) and float(densifier.grad_accum.sum()) == 0.0
+    assert state["grad_accum"].shape == (5,) and float(state["grad_accum"].sum()) == 0.0
     # the (fused) Adam steps on with the carried moments
     sum((getattr(field, n) ** 2).sum() for n in PARAM_NAMES).backward()
     optimizers.step()
@@ -53,7 +53,7 @@ def test_clone_split_prune_and_adam_state_follow():
 
 def test_adam_is_fused_gives_the_loops_update_and_stays_fused_when_loading_an_unfused_state():
     def second_step(fused: bool):
-        field, optimizers, _ = make()  # built fused, one step taken
+        field, optimizers, _, _ = make()  # built fused, one step taken
         for opt in optimizers.optimizers.values():
             assert all(group["fused"] for group in opt.param_groups)
             for group in opt.param_groups:
@@ -67,7 +67,7 @@ def test_adam_is_fused_gives_the_loops_update_and_stays_fused_when_loading_an_un
     for name in PARAM_NAMES:
         torch.testing.assert_close(getattr(fused_field, name), getattr(loop_field, name), rtol=1e-6, atol=1e-7)
     # a checkpoint of the loop (runs from before the switch) loads into an Adam that stays fused and steps on
-    field, optimizers, _ = make()
+    field, optimizers, _, _ = make()
     optimizers.load_state_dict(loop_optimizers.state_dict())
     for opt in optimizers.optimizers.values():
         assert all(group["fused"] for group in opt.param_groups)
@@ -77,27 +77,44 @@ def test_adam_is_fused_gives_the_loops_update_and_stays_fused_when_loading_an_un
 
 def test_opacity_reset_happens_on_schedule_and_clears_moments():
     """gsplat 1.5.3's strategy never resets (a bitwise & on a bool); ours must, at every multiple."""
-    field, optimizers, densifier = make(reset_opacity_every=3000, refine_every=10**9)
-    densifier.after_step(2999, {})
+    field, optimizers, strategy, state = make(reset_opacity_every=3000, refine_every=10**9)
+    strategy.step_post_optimizer(field, optimizers, state, 2999)
     assert torch.sigmoid(field.opacities).max() > 0.5
-    densifier.after_step(3000, {})
+    strategy.step_post_optimizer(field, optimizers, state, 3000)
     assert torch.sigmoid(field.opacities).max() <= 0.01 + 1e-6
     state = optimizers.optimizers["opacities"].state[field.opacities]
     assert float(state["exp_avg"].abs().sum()) == 0.0
 
 
 def test_no_reset_after_densification_stops():
-    field, _, densifier = make(reset_opacity_every=3000, refine_stop=5000, refine_every=10**9)
-    densifier.after_step(6000, {})
+    field, optimizers, strategy, state = make(reset_opacity_every=3000, refine_stop=5000, refine_every=10**9)
+    strategy.step_post_optimizer(field, optimizers, state, 6000)
     assert torch.sigmoid(field.opacities).max() > 0.5
 
 
 def test_refine_stop_is_half_the_run_or_less():
-    field, optimizers, _ = make()
-    stops = {(stop, steps): Densifier(DensificationConfig(refine_stop=stop), field, optimizers, 1.0, steps).refine_stop
+    stops = {(stop, steps): DefaultStrategy(DensificationConfig(refine_stop=stop), 1.0, steps).refine_stop
              for stop in (None, 15000) for steps in (6000, 30000, 40000)}
     assert stops == {(None, 6000): 3000, (None, 30000): 15000, (None, 40000): 20000,
                      (15000, 6000): 3000, (15000, 30000): 15000, (15000, 40000): 15000}
+
+
+def test_statistics_are_ndc_gradient_norms_and_largest_screen_radii():
+    """step_post_backward: |d loss / d ndc| summed per visible Gaussian, visible views counted, and the largest
+    screen radius kept (a share of the image's larger side), all on the Gaussians' device; nothing after the stop."""
+    field, _, strategy, state = make(refine_stop=100)
+    means2d = torch.zeros(4, 2, requires_grad=True)
+    (means2d * torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [7.0, 8.0]])).sum().backward()
+    radii = torch.tensor([2, 0, 8, 4])
+    for radius_scale in (1, 2):
+        strategy.step_post_backward(state, 10, means2d, radii * radius_scale, (40, 20))
+    expected = torch.tensor([math.hypot(20, 20), 0.0, math.hypot(100, 60), math.hypot(140, 80)]) * 2
+    torch.testing.assert_close(state["grad_accum"], expected)
+    assert state["visible_count"].tolist() == [2, 0, 2, 2]
+    torch.testing.assert_close(state["max_radii"], torch.tensor([4.0, 0.0, 16.0, 8.0]) / 40)
+    assert all(v.device == field.means.device for v in state.values())
+    strategy.step_post_backward(state, 101, means2d, radii, (40, 20))  # after refine_stop: no statistics
+    assert state["visible_count"].tolist() == [2, 0, 2, 2]
 
 
 def test_methods_carry_their_schedules():

@@ -203,7 +203,6 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     import dataclasses
 
     from uw3dgs.fields.medium import softplus_inverse
-    from uw3dgs.methods.uw3dgs import MediumEstimateStart
     from uw3dgs.registry import METHODS
     from uw3dgs.render.sh import rgb_to_sh
 
@@ -216,10 +215,7 @@ def test_estimate_start_sets_a_flat_medium_and_dehazed_colours(make_config):
     model = model_config.setup(scene=scene, train_indices=train)
     prior = torch.tensor(medium.beta_prior)
     torch.testing.assert_close(model.medium.beta_d.bias.detach(), softplus_inverse(prior))  # no fit until training
-    start = next(cb for cb in model.get_training_callbacks(None, 10) if isinstance(cb, MediumEstimateStart))
-    start.before_step(2)  # a resumed run: the checkpoint has the medium
-    torch.testing.assert_close(model.medium.beta_d.bias.detach(), softplus_inverse(prior))
-    start.before_step(1)  # a fresh run
+    model.initialize_from_data(scene, train)  # the Trainer's hook on a fresh run
     cameras, images = [scene.cameras[i] for i in train], [scene.images[i] for i in train]
     water = open_water_color(scene.points, cameras, images, medium.open_water_cells, medium.open_water_min_share)
     assert water is not None  # the built-in scene's views show open water at the top
@@ -257,7 +253,7 @@ def test_truth_start_is_the_scene_medium_and_needs_one(make_config):
     model_config = dataclasses.replace(spec.model, medium=medium, gaussians=base.model.gaussians)
     scene, train = (dm := base.datamanager.setup(data=None)).scene, dm.train_indices
     model = model_config.setup(scene=scene, train_indices=train)
-    model.start_from_estimate()
+    model.initialize_from_data(scene, train)
     truth = [torch.tensor(scene.gt.medium[k]) for k in ("beta_D", "beta_B", "B_inf")]
     points = torch.rand(200, 3) * (model.medium.box_max - model.medium.box_min) + model.medium.box_min
     for learned, true in zip((*model.medium.betas(points), model.medium.b_inf.detach()), truth, strict=True):

@@ -69,10 +69,29 @@ def test_fresh_venv_lists_methods_without_generic_top_level_names(fresh_venv):
     assert run([str(fresh_venv / "bin" / "python"), "-c", probe], cwd="/").stdout.strip() == "[]"
 
 
+def install_plugin(venv: Path, tmp_path: Path, module: str, source: str, group: str, entry: str) -> None:
+    """Build a one-module package whose entry point `entry` ("name = module:attr") is in `group` with this
+    environment's setuptools, and install it into `venv` as a wheel."""
+    plugin = tmp_path / module
+    (plugin / module).mkdir(parents=True)
+    (plugin / module / "__init__.py").write_text(textwrap.dedent(source))
+    (plugin / "pyproject.toml").write_text(textwrap.dedent(f"""
+        [build-system]
+        requires = ["setuptools"]
+        build-backend = "setuptools.build_meta"
+        [project]
+        name = "{module.replace('_', '-')}"
+        version = "0.0.1"
+        [project.entry-points."{group}"]
+        {entry}
+    """))
+    run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(plugin)])
+    (plugin_wheel,) = tmp_path.glob(f"{module}-*.whl")
+    run([str(venv / "bin" / "python"), "-m", "pip", "install", "--no-deps", "--no-index", str(plugin_wheel)])
+
+
 def test_third_party_plugin_method_appears(fresh_venv, tmp_path):
-    plugin = tmp_path / "uw3dgs_plugin_demo"
-    (plugin / "uw3dgs_plugin_demo").mkdir(parents=True)
-    (plugin / "uw3dgs_plugin_demo" / "__init__.py").write_text(textwrap.dedent("""
+    install_plugin(fresh_venv, tmp_path, "uw3dgs_plugin_demo", """
         import dataclasses
         from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
         from uw3dgs.registry import MethodSpec
@@ -80,21 +99,34 @@ def test_third_party_plugin_method_appears(fresh_venv, tmp_path):
         base = gaussian_splatting.config
         method = MethodSpec("demo-plugin-method", "A method from a third-party package.",
                             dataclasses.replace(base, method_name="demo-plugin-method", max_num_iterations=7))
-    """))
-    (plugin / "pyproject.toml").write_text(textwrap.dedent("""
-        [build-system]
-        requires = ["setuptools"]
-        build-backend = "setuptools.build_meta"
-        [project]
-        name = "uw3dgs-plugin-demo"
-        version = "0.0.1"
-        [project.entry-points."uw3dgs.methods"]
-        demo = "uw3dgs_plugin_demo:method"
-    """))
-    # built with this environment's setuptools, installed into the fresh venv as a wheel
-    run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path), str(plugin)])
-    (plugin_wheel,) = tmp_path.glob("uw3dgs_plugin_demo-*.whl")
-    run([str(fresh_venv / "bin" / "python"), "-m", "pip", "install", "--no-deps", "--no-index", str(plugin_wheel)])
+    """, "uw3dgs.methods", "demo = \"uw3dgs_plugin_demo:method\"")
     uw_train = str(fresh_venv / "bin" / "uw-train")
     assert "demo-plugin-method" in run([uw_train, "--help"], cwd="/").stdout
     assert "(default: 7)" in run([uw_train, "demo-plugin-method", "--help"], cwd="/").stdout
+
+
+def test_third_party_field_plugin_is_chosen_by_name(fresh_venv, tmp_path):
+    """A medium field from another package, registered through the `uw3dgs.fields` entry point: its knobs in
+    `uw-train uw3dgs --model.medium-field NAME --help`, and a run trains with it and records it."""
+    install_plugin(fresh_venv, tmp_path, "uw3dgs_field_demo", """
+        from dataclasses import dataclass
+        from uw3dgs.fields.medium import HomogeneousMediumConfig
+        from uw3dgs.registry import FieldSpec
+
+        @dataclass(frozen=True)
+        class ClearWaterConfig(HomogeneousMediumConfig):
+            turbidity_note: str = "clear"
+            \"\"\"A knob only this field has.\"\"\"
+
+        field = FieldSpec("demo-clear-water", "Nearly clear water (a plugin)", ClearWaterConfig(), kind="medium")
+    """, "uw3dgs.fields", "demo-clear-water = \"uw3dgs_field_demo:field\"")
+    uw_train = str(fresh_venv / "bin" / "uw-train")
+    chosen = ["uw3dgs", "--model.medium-field", "demo-clear-water"]
+    assert "--model.medium.turbidity-note" in run([uw_train, *chosen, "--help"], cwd="/").stdout
+    args = [*chosen, "--max-num-iterations", "2", "--steps-per-save", "2", "--no-progress", "--model.raster.backend",
+            "torch", "--output-dir", str(tmp_path / "out"), "--timestamp", "t", "synthetic",
+            "--datamanager.scene.width", "32", "--datamanager.scene.height", "24", "--datamanager.scene.num-views",
+            "9", "--datamanager.cache-dir", str(tmp_path / "cache")]
+    run([uw_train, *args], cwd="/")
+    saved = (tmp_path / "out" / "synthetic" / "uw3dgs" / "t" / "config.yml").read_text()
+    assert "medium_field: demo-clear-water" in saved and "uw3dgs_field_demo.ClearWaterConfig" in saved

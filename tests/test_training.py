@@ -47,7 +47,13 @@ def test_training_learns_and_writes_the_run_folder(make_config):
 
 def test_resume_matches_an_uninterrupted_run(make_config, monkeypatch):
     # opacity reset at step 15 and densification up to 20 both happen before the kill: their state must survive
+    from uw3dgs.models.base import Model
+
+    fits = []  # the data-dependent start (e.g. uw3dgs's medium estimate) runs on a fresh run, never on a resume
+    hook = Model.initialize_from_data
+    monkeypatch.setattr(Model, "initialize_from_data", lambda self, *a: (fits.append(1), hook(self, *a)))
     full = train(make_config(steps=40, reset_opacity_every=15, timestamp="full"))
+    assert len(fits) == 1
 
     config = make_config(steps=40, reset_opacity_every=15, timestamp="killed")
     killed = Trainer(config)
@@ -67,7 +73,7 @@ def test_resume_matches_an_uninterrupted_run(make_config, monkeypatch):
 
     resumed = Trainer(dataclasses.replace(config, resume=True))
     resumed.setup()
-    assert resumed.start_step == 20
+    assert resumed.start_step == 20 and len(fits) == 2  # the full run's and the killed one's, not the resume's
     resumed.train()
     a, b = full.model.state_dict(), resumed.model.state_dict()
     assert a.keys() == b.keys()

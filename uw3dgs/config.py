@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
-import os
-import tempfile
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,8 +20,10 @@ from typing import Any
 import tyro
 import yaml
 
-Target = tyro.conf.Suppress[type]
-"""Annotation of `_target`: not a command-line option."""
+from uw3dgs.utils.io import write_text
+
+Target = tyro.conf.Suppress[Callable[..., Any]]
+"""Annotation of `_target` (a class or a factory taking the config first): not a command-line option."""
 
 
 def target(factory: Any) -> Any:
@@ -105,12 +106,7 @@ def config_from_dict(data: dict[str, Any]) -> Any:
 
 def save_config(config: Any, path: Path) -> None:
     """Write `config` as YAML, atomically (a killed run never leaves half a config)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = yaml.safe_dump(config_to_dict(config), sort_keys=False)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    write_text(path, yaml.safe_dump(config_to_dict(config), sort_keys=False))
 
 
 def load_config(path: Path) -> Any:

@@ -8,11 +8,12 @@ so `uw-train --help` stays fast and a broken plugin names itself instead of brea
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import Any, Generic, TypeVar
+
+from uw3dgs.utils.console import warn
 
 
 @dataclass(frozen=True)
@@ -37,11 +38,16 @@ class DataManagerSpec:
 
 @dataclass(frozen=True)
 class FieldSpec:
-    """A model part (Gaussian model, medium grid, ...) that methods compose."""
+    """A model part that methods compose, chosen by registry name (`--model.medium-field NAME`).
+
+    `kind` says which slot of a model it fills: "gaussians" (the scene's Gaussians) or "medium" (the water);
+    a model config accepts only fields of the kind its slot asks for. `config` is the field's default config,
+    whose `setup()` builds it with the keyword arguments that kind's slot passes (see the method's model)."""
 
     name: str
     description: str
     config: Any
+    kind: str
 
 
 SpecT = TypeVar("SpecT", MethodSpec, DataManagerSpec, FieldSpec)
@@ -62,16 +68,14 @@ class Registry(Generic[SpecT]):
                 try:
                     spec = ep.load()
                 except Exception as exc:  # a broken third-party plugin must not hide the others
-                    warnings.warn(f"uw3dgs: plugin '{ep.name}' ({ep.value}) in {self.group} failed to load: {exc}",
-                                  stacklevel=2)
+                    warn(f"plugin '{ep.name}' ({ep.value}) in {self.group} failed to load: {exc}")
                     continue
                 if not isinstance(spec, self.spec_type):
-                    warnings.warn(f"uw3dgs: entry point '{ep.name}' in {self.group} is a {type(spec).__name__}, "
-                                  f"expected {self.spec_type.__name__}; ignored", stacklevel=2)
+                    warn(f"entry point '{ep.name}' in {self.group} is a {type(spec).__name__}, "
+                         f"expected {self.spec_type.__name__}; ignored")
                     continue
                 if spec.name in specs:
-                    warnings.warn(f"uw3dgs: '{spec.name}' is registered twice in {self.group}; "
-                                  f"keeping {specs[spec.name]!r}", stacklevel=2)
+                    warn(f"'{spec.name}' is registered twice in {self.group}; keeping {specs[spec.name]!r}")
                     continue
                 specs[spec.name] = spec
             self._specs = specs
@@ -101,3 +105,11 @@ class Registry(Generic[SpecT]):
 METHODS: Registry[MethodSpec] = Registry("uw3dgs.methods", MethodSpec)
 DATAMANAGERS: Registry[DataManagerSpec] = Registry("uw3dgs.datamanagers", DataManagerSpec)
 FIELDS: Registry[FieldSpec] = Registry("uw3dgs.fields", FieldSpec)
+
+
+def field_spec(name: str, kind: str) -> FieldSpec:
+    """The field registered as `name`, which must be of `kind`; the error lists the fields that are."""
+    fitting = [n for n, spec in FIELDS.items() if spec.kind == kind]
+    if name not in FIELDS or FIELDS[name].kind != kind:
+        raise ValueError(f"unknown {kind} field '{name}'; registered {kind} fields: {', '.join(fitting) or 'none'}")
+    return FIELDS[name]

@@ -13,6 +13,7 @@ from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.config import load_config
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.registry import METHODS
+from uw3dgs.utils.console import route_warnings
 
 USER_ERRORS = (FileNotFoundError, ValueError, RuntimeError)
 
@@ -24,6 +25,18 @@ def _flag_value(argv: list[str], flag: str) -> str | None:
         if arg.startswith(flag + "="):
             return arg.split("=", 1)[1]
     return None
+
+
+def _select_fields(config: TrainConfig, argv: list[str]) -> TrainConfig:
+    """Apply `--model.<selector> NAME` (e.g. `--model.medium-field medium-homogeneous`) before parsing: the named
+    registered field's config takes its slot, so `--model.medium.*` and `--help` show that field's knobs."""
+    model = config.model
+    for selector in model.field_slots:
+        flags = (f"--model.{selector.replace('_', '-')}", f"--model.{selector}")
+        name = next((v for v in (_flag_value(argv, f) for f in flags) if v is not None), None)
+        if name is not None and name != getattr(model, selector):
+            model = model.with_field(selector, name)
+    return config if model is config.model else dataclasses.replace(config, model=model)
 
 
 def parse_config(argv: list[str]) -> TrainConfig:
@@ -38,12 +51,15 @@ def parse_config(argv: list[str]) -> TrainConfig:
         defaults[saved.method_name] = dataclasses.replace(saved, load_config=Path(load))
         if not argv or argv[0] not in defaults:
             argv = [saved.method_name, *argv]
+    if argv and argv[0] in defaults:
+        defaults[argv[0]] = _select_fields(defaults[argv[0]], argv)
     choices = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
     return tyro.cli(choices, args=argv, prog="uw-train", description="Train a uw3dgs method.")
 
 
 def entrypoint(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    route_warnings()
     console = Console()
     try:
         config = parse_config(argv)

@@ -13,10 +13,11 @@ class TrainingCallback:
     def before_step(self, step: int) -> None:
         """Before the forward pass (schedules: SH degree, learning rates)."""
 
-    def after_backward(self, step: int, outputs: dict[str, Any]) -> None:
-        """Gradients exist, parameters not yet updated (read screen-space gradients here)."""
+    def after_backward(self, step: int, batch: dict[str, Any], outputs: dict[str, Any]) -> None:
+        """Gradients exist, parameters not yet updated (read screen-space gradients here). `batch` is the
+        view trained on (its 'camera' gives the image size and centre), `outputs` what the model rendered."""
 
-    def after_step(self, step: int, outputs: dict[str, Any]) -> None:
+    def after_step(self, step: int, batch: dict[str, Any], outputs: dict[str, Any]) -> None:
         """After the optimizer step (densify, prune, reset: parameters may change size here)."""
 
     def state_dict(self) -> dict[str, Any]:

@@ -34,8 +34,8 @@ def exponential_decay(step: int, lr_init: float, lr_final: float, max_steps: int
 
 
 def _fusable(params: list[nn.Parameter]) -> bool:
-    """Adam's fused kernel (one pass per tensor instead of one per operation: about 2x faster on CPU at 186k
-    Gaussians, `benchmarks/adam_fused.py`) where PyTorch has one; the same update to float rounding."""
+    """Adam's fused kernel (one pass per tensor instead of one per operation; timings in docs/performance.md)
+    where PyTorch has one for these tensors; the same update to float rounding."""
     return all(p.device.type in ("cpu", "cuda") and p.dtype in (torch.float32, torch.float64) for p in params)
 
 

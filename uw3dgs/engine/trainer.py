@@ -16,11 +16,12 @@ from uw3dgs.config import config_to_dict, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManager
 from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
 from uw3dgs.engine.config import TrainConfig
-from uw3dgs.engine.evaluator import evaluate_views, write_json
+from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.engine.progress import TrainingProgress
 from uw3dgs.engine.writer import EventWriter
 from uw3dgs.models.base import Model
+from uw3dgs.utils.io import write_json
 
 
 class TrainingDivergedError(RuntimeError):
@@ -62,6 +63,8 @@ class Trainer:
         if checkpoint is not None:
             self.model.load_checkpoint_state(checkpoint["model"])
         self.model.to(self.device)
+        if checkpoint is None:
+            self.model.initialize_from_data(self.datamanager.scene, self.datamanager.train_indices)
         self.optimizers = Optimizers(config.optimizers, self.model.param_groups(), self.model.scene_extent,
                                      config.max_num_iterations)
         self.callbacks = self.model.get_training_callbacks(self.optimizers, config.max_num_iterations)
@@ -124,10 +127,10 @@ class Trainer:
         self.optimizers.zero_grad()
         loss.backward()
         for cb in self.callbacks:
-            cb.after_backward(step, outputs)
+            cb.after_backward(step, batch, outputs)
         self.optimizers.step()
         for cb in self.callbacks:
-            cb.after_step(step, outputs)
+            cb.after_step(step, batch, outputs)
         metrics = self.model.get_metrics_dict(outputs, batch)
         losses = {"loss": loss.detach(), **{k: v.detach() for k, v in losses.items()}}
         return losses, metrics

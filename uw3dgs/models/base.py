@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from torch import Tensor, nn
 
@@ -14,11 +15,33 @@ from uw3dgs.data.scene import SceneData, scene_extent
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.metrics.image import psnr, ssim
+from uw3dgs.registry import field_spec
 
 
 @dataclass(frozen=True)
 class ModelConfig(InstantiateConfig):
     _target: Target = target(lambda: Model)
+
+    field_slots: ClassVar[dict[str, tuple[str, str]]] = {}
+    """Model parts chosen by registry name: selector option -> (the option holding that part's config, the
+    field kind it takes), e.g. {"medium_field": ("medium", "medium")} for `--model.medium-field NAME` with
+    knobs under `--model.medium.*`."""
+
+    def __post_init__(self) -> None:
+        # a selector names a registered field; its slot must hold that field's config (a changed name with the
+        # old knobs, as from dataclasses.replace, gets the new field's defaults)
+        for selector, (slot, kind) in self.field_slots.items():
+            spec = field_spec(getattr(self, selector), kind)
+            if type(getattr(self, slot)) is not type(spec.config):
+                object.__setattr__(self, slot, spec.config)
+
+    def with_field(self, selector: str, name: str) -> ModelConfig:
+        """This config with the registered field `name` in `selector`'s slot, at that field's defaults."""
+        if selector not in self.field_slots:
+            raise ValueError(f"{type(self).__name__} has no field option '{selector}'; it has "
+                             f"{', '.join(self.field_slots) or 'none'}")
+        slot, kind = self.field_slots[selector]
+        return dataclasses.replace(self, **{selector: name, slot: field_spec(name, kind).config})
 
 
 class Model(nn.Module):
@@ -68,7 +91,13 @@ class Model(nn.Module):
         return {}
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
+        """Hooks into the training loop (schedules, density control); their state is checkpointed."""
         return []
+
+    def initialize_from_data(self, scene: SceneData, train_indices: list[int]) -> None:
+        """Called by the Trainer once on a fresh run, after the model is on its device and before step 1 (never
+        on `--resume` or when a trained model is loaded for evaluation): fits that need the training views and
+        whose result a checkpoint holds anyway, e.g. a starting medium. Default: nothing."""
 
     def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
         """Load weights saved by `state_dict()` (override when parameter shapes change in training)."""

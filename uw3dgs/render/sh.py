@@ -73,7 +73,7 @@ def eval_sh_split(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Tensor
 
     The higher bands are one batched product, basis [N, 1, B - 1] @ coefficients [N, B - 1, 3]. Written as
     one term per basis function (3DGS's form), autograd builds and adds a full-size zero gradient per term:
-    that was the largest cost of a CPU training step at 90k Gaussians (benchmarks/sh_eval.py).
+    a large share of a CPU training step (docs/performance.md, benchmarks/speed/sh_eval.py).
     """
     if not 0 <= degree <= MAX_DEGREE:
         raise ValueError(f"SH degree must be in [0, {MAX_DEGREE}], got {degree}")
@@ -92,7 +92,7 @@ class _BandProduct(torch.autograd.Function):
 
     Autograd's own backward of that product forms the coefficients' gradient, an outer product per Gaussian,
     as a batched matmul of [K, 1] by [1, 3], much slower on CPU than the broadcast multiply used here, with
-    bitwise the same values (each entry is one product either way): colours 1.3x faster, benchmarks/sh_eval.py."""
+    bitwise the same values (each entry is one product either way); timings in docs/performance.md."""
 
     @staticmethod
     def forward(ctx, basis: Tensor, coeffs: Tensor) -> Tensor:

@@ -1,0 +1,165 @@
+"""3DGS adaptive density control: clone, split, prune and opacity reset (Kerbl et al. 2023, Sec. 5).
+
+After each backward, `step_post_backward` accumulates the screen-space gradient of every visible Gaussian;
+after each optimizer step, `step_post_optimizer` densifies every `refine_every` steps where the average
+gradient is large, prunes what is transparent or too big, and lowers all opacities every
+`reset_opacity_every` steps. The statistics live on the Gaussians' device (no host sync per step).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from uw3dgs.render.projection import quat_to_rotmat
+from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
+
+State = dict[str, Tensor]
+"""'grad_accum' [N] (summed NDC gradient norms), 'visible_count' [N], 'max_radii' [N] (largest screen
+radius as a share of the image's larger side), on the Gaussians' device."""
+
+
+@dataclass(frozen=True)
+class DensificationConfig:
+    refine_start: int = 500
+    """First step that densifies or prunes."""
+    refine_every: int = 100
+    """Steps between densification events."""
+    refine_stop: int | None = None
+    """Last densification step (and opacity reset), at most half of --max-num-iterations; None = half
+    (15k of 30k, as 3DGS). The cap keeps a shortened run's schedule sane: a method that pins 15,000 for its
+    40,000 steps still stops at 3,000 in a 6,000-step run."""
+    grad_threshold: float = 0.0002
+    """Average screen-space gradient (normalised device coordinates, as 3DGS) above which a Gaussian grows."""
+    percent_dense: float = 0.01
+    """Gaussians larger than this fraction of the scene extent are split, smaller ones cloned."""
+    split_samples: int = 2
+    """New Gaussians per split one."""
+    min_opacity: float = 0.005
+    """Gaussians more transparent than this are pruned."""
+    reset_opacity_every: int = 3000
+    """Steps between opacity resets; 0 disables them."""
+    reset_opacity_value: float = 0.01
+    """Opacities are clamped down to this at a reset."""
+    prune_screen_size: float = 0.15
+    """After the first reset, prune Gaussians whose screen radius exceeded this fraction of the image."""
+    prune_world_size: float = 0.1
+    """After the first reset, prune Gaussians larger than this fraction of the scene extent."""
+
+
+class DefaultStrategy:
+    """3DGS's density control for one run: `scene_extent` in world units, the run's length in steps."""
+
+    def __init__(self, config: DensificationConfig, scene_extent: float, max_num_iterations: int):
+        self.config = config
+        self.scene_extent = scene_extent
+        half = max_num_iterations // 2
+        self.refine_stop = half if config.refine_stop is None else min(config.refine_stop, half)
+
+    def initialize_state(self, gaussians: GaussianParameters) -> State:
+        """Zero statistics for the Gaussians as they are now."""
+        n, device = gaussians.means.shape[0], gaussians.means.device
+        return {"grad_accum": torch.zeros(n, device=device), "visible_count": torch.zeros(n, device=device),
+                "max_radii": torch.zeros(n, device=device)}
+
+    # -- statistics --
+
+    @torch.no_grad()
+    def step_post_backward(self, state: State, step: int, means2d: Tensor, radii: Tensor,
+                           image_size: tuple[int, int]) -> None:
+        """Accumulate one view's statistics: `means2d` [N, 2] (pixels, with `.grad` from this backward),
+        `radii` [N] (pixels, 0 = not visible), `image_size` (width, height)."""
+        if step > self.refine_stop or means2d.grad is None:
+            return
+        width, height = image_size
+        visible = radii > 0
+        # 3DGS thresholds the gradient with respect to NDC coordinates: d/d(ndc) = d/d(pixel) * size / 2
+        grad = means2d.grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d.device)
+        state["grad_accum"][visible] += grad[visible].norm(dim=-1)
+        state["visible_count"][visible] += 1
+        radius = radii.detach().float() / max(width, height)
+        state["max_radii"][visible] = torch.maximum(state["max_radii"][visible], radius[visible])
+
+    # -- events --
+
+    def step_post_optimizer(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
+                            step: int) -> None:
+        """Densify and prune, or reset opacities, when the schedule says so at `step`."""
+        c = self.config
+        if c.refine_start <= step <= self.refine_stop and step % c.refine_every == 0:
+            self.densify_and_prune(gaussians, optimizers, state, step)
+        if c.reset_opacity_every > 0 and step > 0 and step % c.reset_opacity_every == 0 and step <= self.refine_stop:
+            self.reset_opacity(gaussians, optimizers)
+
+    @torch.no_grad()
+    def densify_and_prune(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
+                          step: int) -> None:
+        c = self.config
+        g = gaussians
+        avg_grad = state["grad_accum"] / state["visible_count"].clamp_min(1)
+        grow = avg_grad >= c.grad_threshold
+        max_scale = torch.exp(g.scales.detach()).max(dim=-1).values
+        small = max_scale <= c.percent_dense * self.scene_extent
+        clone, split = grow & small, grow & ~small
+
+        n_before = g.means.shape[0]
+        # both from the Gaussians as they were, before either set of new ones is appended
+        cloned, split_off = self._clone_values(g, clone), self._split_values(g, split)
+        self._append(g, optimizers, cloned)
+        self._append(g, optimizers, split_off)
+        # split originals are removed; so is what is transparent and, after the first reset, too big
+        keep = torch.ones(g.means.shape[0], dtype=torch.bool, device=g.means.device)
+        keep[:n_before][split] = False
+        keep &= torch.sigmoid(g.opacities.detach()) >= c.min_opacity
+        if c.reset_opacity_every > 0 and step > c.reset_opacity_every:
+            scale_now = torch.exp(g.scales.detach()).max(dim=-1).values
+            too_big = scale_now > c.prune_world_size * self.scene_extent
+            # new Gaussians have no screen-size history: 0
+            max_radii = torch.cat([state["max_radii"], state["max_radii"].new_zeros(len(keep) - n_before)])
+            too_big |= max_radii > c.prune_screen_size
+            keep &= ~too_big
+        self._keep(g, optimizers, keep)
+        state.update(self.initialize_state(g))
+
+    @staticmethod
+    def _clone_values(g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:
+        return {name: getattr(g, name).detach()[mask] for name in g.param_names}
+
+    def _split_values(self, g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:
+        """Each selected Gaussian becomes `split_samples` smaller ones sampled from its own distribution."""
+        k = self.config.split_samples
+        values = {name: getattr(g, name).detach()[mask].repeat_interleave(k, dim=0) for name in g.param_names}
+        scales = torch.exp(values["scales"])
+        rot = quat_to_rotmat(values["quats"])
+        offsets = torch.einsum("nij,nj->ni", rot, torch.randn_like(scales) * scales)
+        values["means"] = values["means"] + offsets
+        values["scales"] = torch.log(scales / (0.8 * k))  # 3DGS shrinks split Gaussians by 1.6 for k = 2
+        return values
+
+    @staticmethod
+    def _append(g: GaussianParameters, optimizers: OptimizerSurgery, values: dict[str, Tensor]) -> None:
+        n_new = values["means"].shape[0]
+        if n_new == 0:
+            return
+        current = {name: getattr(g, name).detach() for name in g.param_names}
+        swapped = g.set_params({name: torch.cat([current[name], values[name]]) for name in g.param_names})
+        for name, (old, new) in swapped.items():
+            # new Gaussians start with zero Adam moments
+            optimizers.replace_param(name, old, new, lambda m, n=n_new: torch.cat([m, m.new_zeros((n, *m.shape[1:]))]))
+
+    @staticmethod
+    def _keep(g: GaussianParameters, optimizers: OptimizerSurgery, keep: Tensor) -> None:
+        if bool(keep.all()):
+            return
+        swapped = g.set_params({name: getattr(g, name).detach()[keep] for name in g.param_names})
+        for name, (old, new) in swapped.items():
+            optimizers.replace_param(name, old, new, lambda m: m[keep])
+
+    @torch.no_grad()
+    def reset_opacity(self, g: GaussianParameters, optimizers: OptimizerSurgery) -> None:
+        limit = torch.logit(torch.tensor(self.config.reset_opacity_value)).item()
+        swapped = g.set_params({"opacities": g.opacities.detach().clamp_max(limit)})
+        old, new = swapped["opacities"]
+        optimizers.replace_param("opacities", old, new, torch.zeros_like)
