@@ -1,13 +1,38 @@
 #!/usr/bin/env bash
 # Create .venv (if missing) and install uw3dgs with its test tools, with torch pinned by constraints.txt.
+# Quiet on success (one line); when a step fails, its full output (pip's, kept in a log file) and a hint.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+LOG=$(mktemp "${TMPDIR:-/tmp}/uw3dgs-install.XXXXXX.log")
+
+# step HINT COMMAND...: run COMMAND with its output in $LOG; if it fails, show the log and HINT, and stop with
+# COMMAND's exit status.
+step() {
+  local hint=$1 status=0
+  shift
+  printf '\n$ %s\n' "$*" >>"$LOG"
+  "$@" >>"$LOG" 2>&1 || status=$?
+  if [ "$status" -ne 0 ]; then
+    cat "$LOG" >&2
+    printf '\ninstall.sh: failed (exit status %d): %s\n' "$status" "$*" >&2
+    printf 'hint: %s (full log: %s)\n' "$hint" "$LOG" >&2
+    exit "$status"
+  fi
+}
+
 if [ ! -x .venv/bin/python ]; then
-  python3 -m venv .venv
+  step "python3 needs its venv module (Debian/Ubuntu: apt install python3-venv)" python3 -m venv .venv
 fi
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -c constraints.txt torch==2.13.0
-.venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+PIP=(.venv/bin/python -m pip install --progress-bar off)
+step "pip could not reach its package index: check the network or pip's index settings (pip config list)" \
+  "${PIP[@]}" --upgrade pip
+step "torch is pinned by constraints.txt (the CPU build); on a CUDA machine install the CUDA torch first and drop the pin" \
+  "${PIP[@]}" -c constraints.txt torch==2.13.0
+step "the error above is pip's; a dependency conflicting with constraints.txt is the usual cause" \
+  "${PIP[@]}" -c constraints.txt -e ".[dev]"
 # gsplat (the kernels of the 'gsplat' CUDA backend, the `cuda` extra): a pure-Python wheel, installed here too so
 # that the CPU glue tests of tests/test_gsplat_backend.py run; it compiles CUDA only when used on a GPU.
-.venv/bin/python -m pip install --quiet -c constraints.txt "gsplat==1.5.3"
+step "gsplat 1.5.3 is a pure-Python wheel; the error above is pip's" \
+  "${PIP[@]}" -c constraints.txt "gsplat==1.5.3"
+rm -f "$LOG"
+echo "uw3dgs installed in .venv"

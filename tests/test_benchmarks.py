@@ -1,4 +1,5 @@
-"""The analysis scripts in benchmarks/ that read trained runs: they agree with uw-eval and invert the medium."""
+"""The scripts in benchmarks/: the analysis ones (benchmarks/analysis/) that read trained runs agree with uw-eval
+and invert the medium; the speed ones (benchmarks/speed/) compare implementations that agree."""
 
 from __future__ import annotations
 
@@ -20,9 +21,11 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
 def load_script(name: str):
-    if str(BENCHMARKS) not in sys.path:  # the speed scripts import their siblings (timing.py, ...), as python does
-        sys.path.insert(0, str(BENCHMARKS))
-    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", BENCHMARKS / f"{name}.py")
+    """benchmarks/speed/NAME.py or benchmarks/analysis/NAME.py, loaded as `python benchmarks/GROUP/NAME.py` would."""
+    (path,) = [p for p in (BENCHMARKS / "speed" / f"{name}.py", BENCHMARKS / "analysis" / f"{name}.py") if p.exists()]
+    if str(path.parent) not in sys.path:  # the speed scripts import their siblings (timing.py, ...), as python does
+        sys.path.insert(0, str(path.parent))
+    spec = importlib.util.spec_from_file_location(f"benchmark_{name}", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)

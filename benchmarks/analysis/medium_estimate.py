@@ -1,6 +1,6 @@
 """The point-based medium estimate alone (no training) on versions of the built-in synthetic scene.
 
-    python benchmarks/medium_estimate.py
+    python benchmarks/analysis/medium_estimate.py
 
 For the scene without open water or dark surfaces (version 1: tilt 35, no patches), the same scene
 looking up at open water, and version 2 (open water and dark patches, the default), the estimate is run

@@ -1,8 +1,8 @@
 """What fills the pixels of a test view that no training view sees, and what they do to its PSNR.
 
-    python benchmarks/unseen_pixels.py outputs/synthetic/3dgs/<timestamp>/config.yml \
-                                       outputs/synthetic/uw3dgs/<timestamp>/config.yml
-    python benchmarks/unseen_pixels.py RUN/config.yml --large 2.0 --step 2500   # a kept checkpoint
+    python benchmarks/analysis/unseen_pixels.py outputs/synthetic/3dgs/<timestamp>/config.yml \
+                                                outputs/synthetic/uw3dgs/<timestamp>/config.yml
+    python benchmarks/analysis/unseen_pixels.py RUN/config.yml --large 2.0 --step 2500   # a kept checkpoint
 
 Scenes with ground-truth ranges only (the synthetic ones). For every test view of each trained run it
 prints the share of pixels whose surface no training camera has in its field of view (`covisible_mask`),

@@ -1,8 +1,8 @@
 """Where the water-free render (URI) of a trained `uw3dgs` run differs from the clean ground truth, by range.
 
-    python benchmarks/uri_error.py outputs/synthetic/uw3dgs/<timestamp>/config.yml
-    python benchmarks/uri_error.py RUN/config.yml --bands 0 4 6 8 10 14 --skip 0000.png
-    python benchmarks/uri_error.py RUN/config.yml --step 5000     # a checkpoint the run kept (--keep-checkpoints)
+    python benchmarks/analysis/uri_error.py outputs/synthetic/uw3dgs/<timestamp>/config.yml
+    python benchmarks/analysis/uri_error.py RUN/config.yml --bands 0 4 6 8 10 14 --skip 0000.png
+    python benchmarks/analysis/uri_error.py RUN/config.yml --step 5000  # a checkpoint the run kept (--keep-checkpoints)
 
 Scenes with ground truth only (the synthetic ones). Over the test views (less those named in `--skip`),
 pixels are grouped by their true range (open water last) and each group gets its share of the pixels,

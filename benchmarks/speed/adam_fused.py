@@ -1,13 +1,13 @@
 """Adam's update of the Gaussians: PyTorch's fused kernel (uw3dgs) against its per-operation loop.
 
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/adam_fused.py
-    python benchmarks/adam_fused.py --gaussians 186000
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/adam_fused.py
+    python benchmarks/speed/adam_fused.py --gaussians 186000
 
 Times one `Optimizers.step()` over a GaussianField's parameter groups (degree-3 SH: 59 floats per Gaussian,
 3DGS's learning rates, eps 1e-15), one thread, best of `--repeats`, both ways, after the same gradients, and
 checks the updated parameters agree. The loop (PyTorch's default on CPU) makes a pass over memory per
 operation (moments, bias corrections, sqrt, division); the fused kernel makes one. Whole training steps:
-`benchmarks/training_step.py`.
+`benchmarks/speed/training_step.py`.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from timing import compare_cli  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/speed/timing.py, next to this script
 from torch import Tensor
 
 import uw3dgs.engine.optimizers as optimizers_module

@@ -1,14 +1,14 @@
 """The medium's VM fields read at every pixel: channel-major features (uw3dgs) against the row-major form.
 
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/medium_field.py
-    python benchmarks/medium_field.py --points 19608
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/medium_field.py
+    python benchmarks/speed/medium_field.py --points 19608
 
 Times forward + backward of beta_D and beta_B at P ray midpoints (`MediumGrid.ray_betas` with S = 1, the
 range differentiable as in training; 19,608 = the 172x114 pixels of IUI3-RedSea at --downscale-factor 8),
 one thread, best of `--repeats`, both ways, and checks they agree. The row-major form, [N, 3R] features
 times the basis (how uw3dgs did it until this benchmark), makes the plane x line products and their
 backward work on transposed, strided data. Whole training steps:
-`benchmarks/training_step.py`.
+`benchmarks/speed/training_step.py`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
-from timing import compare_cli  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/speed/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField

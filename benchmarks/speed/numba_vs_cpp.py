@@ -1,7 +1,7 @@
 """numba (parallel=True) against C++/OpenMP (torch.utils.cpp_extension) on one small 3DGS kernel.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive \\
-        python benchmarks/numba_vs_cpp.py
+        python benchmarks/speed/numba_vs_cpp.py
 
 Why: the issue asked for the compiled CPU rasterizer to be written either in C++ (cpp_extension + OpenMP)
 or in numba (`prange`), choosing after measuring both on a small kernel. This script is that measurement.
@@ -56,9 +56,10 @@ except ImportError:
     sys.exit("numba is not installed; this benchmark needs it: pip install -c constraints.txt numba")
 NUMBA_IMPORT_S = time.perf_counter() - _t0
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
 from uw3dgs.data.cache import default_cache_dir  # noqa: E402
 from uw3dgs.render.cpu_backend import CFLAGS, _simd_flags  # noqa: E402
+from uw3dgs.utils.console import info  # noqa: E402
 
 TILE = 16
 ALPHA_MIN = 1.0 / 255.0
@@ -424,9 +425,8 @@ def timed_runs(module, repeats: int, thread_counts: list[int]) -> tuple[list[str
                 med = {name: statistics.median(values) * 1e3 for name, values in times.items()}
                 table.append(f"| {n:,} | {size}x{size} | {len(ids):,} | {threads} | {schedule} | {med['numba']:.1f} | "
                              f"{med['cpp']:.1f} | {med['numba'] / med['cpp']:.2f} |")
-                print(f"  {n} Gaussians {size}x{size}, {threads} thread(s), {schedule}: " + ", ".join(
-                    f"{name} {min(v) * 1e3:.1f}-{max(v) * 1e3:.1f} ms" for name, v in times.items()),
-                    file=sys.stderr, flush=True)
+                info(f"{n} Gaussians {size}x{size}, {threads} thread(s), {schedule}: " + ", ".join(
+                    f"{name} {min(v) * 1e3:.1f}-{max(v) * 1e3:.1f} ms" for name, v in times.items()))
     return table, checks
 
 

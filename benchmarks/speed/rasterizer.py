@@ -1,7 +1,7 @@
 """Rasterizer backends: forward and forward+backward time and peak memory on one shared random scene.
 
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/rasterizer.py
-    python benchmarks/rasterizer.py --device cuda      # gsplat against the reference on a GPU
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/rasterizer.py
+    python benchmarks/speed/rasterizer.py --device cuda      # gsplat against the reference on a GPU
 
 Every (backend, Gaussians, resolution, pass) runs in its own subprocess: the peak memory is the growth
 of that process's max RSS (`resource.getrusage`) over its state just before the first render (scene
@@ -121,6 +121,7 @@ def main() -> None:
         return
 
     from uw3dgs.render import BACKENDS
+    from uw3dgs.utils.console import info
 
     if args.device == "cuda" and not torch.cuda.is_available():
         parser.error("--device cuda: no CUDA device here")
@@ -131,7 +132,7 @@ def main() -> None:
     if "torch" in backends:
         backends.remove("torch")
     backends.insert(0, "torch")
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load: {os.getloadavg()}", file=sys.stderr)
+    info(f"torch {torch.__version__}, {torch.get_num_threads()} threads, load: {os.getloadavg()}")
     configs = CONFIGS
     if args.configs:
         configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
@@ -144,7 +145,7 @@ def main() -> None:
             if backend == "torch":
                 ref = res
             rows.append((backend, n, size, res, ref))
-            print(backend, n, size, res, file=sys.stderr, flush=True)
+            info(f"{backend} {n} {size} {res}")
 
     print(
         "| backend | Gaussians | resolution | fwd ms | fwd+bwd ms | speed-up fwd | speed-up fwd+bwd "

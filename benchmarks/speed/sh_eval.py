@@ -1,7 +1,7 @@
 """Spherical-harmonics colours: one batched product with its own backward (uw3dgs) against one term per basis function.
 
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/sh_eval.py
-    python benchmarks/sh_eval.py --gaussians 90000
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/sh_eval.py
+    python benchmarks/speed/sh_eval.py --gaussians 90000
 
 Times forward + backward of the view-dependent colours of N Gaussians (degree 3, one thread, best of
 `--repeats`) three ways and checks the first and last agree. The per-term sum over the concatenated
@@ -10,7 +10,7 @@ benchmark: under autograd every `sh[:, i]` gives a backward that allocates and a
 [N, 16, 3] gradient, 16 times per step. The middle way is one batched product with autograd's backward,
 whose coefficient gradient (an outer product per Gaussian) runs as a slow batched matmul; uw3dgs's own
 backward (`_BandProduct`) makes it a broadcast multiply. Whole training steps:
-`benchmarks/training_step.py`.
+`benchmarks/speed/training_step.py`.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from timing import compare_cli  # benchmarks/timing.py, next to this script
+from timing import compare_cli  # benchmarks/speed/timing.py, next to this script
 from torch import Tensor
 
 from uw3dgs.render.sh import C0, _basis, eval_sh_split, num_sh_bases

@@ -1,7 +1,7 @@
 """Whole training steps of a trained run with each CPU speed change of a training step undone, one at a time.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive \\
-      python benchmarks/training_step.py RUN/config.yml
+      python benchmarks/speed/training_step.py RUN/config.yml
 
 Resumes a copy of the run's latest checkpoint (the run itself is not touched) and times one more training
 step (render, losses, backward, Adam, densification statistics), one thread, best of `--repeats`: as uw3dgs

@@ -13,7 +13,9 @@ from rich.markup import escape
 def exit_with_error(exc: BaseException, console: Console | None = None, hint: str = "") -> NoReturn:
     """Print `error: <message>` and exit with status 2; with UW3DGS_DEBUG set, re-raise for the traceback.
 
-    The message is not wrapped (paths in it stay copyable) and brackets in it are not read as markup.
+    The message is not wrapped (paths in it stay copyable) and brackets in it are not read as markup. It goes to
+    `console` (the command's own, for its results), by default a new one on stdout: the command's last word, where
+    its results would have been, not to the shared message console (`uw3dgs.utils.console`, stderr).
     """
     if os.environ.get("UW3DGS_DEBUG"):
         raise exc

@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
+from uw3dgs.utils.console import info, route_warnings
 
 
 @dataclass(frozen=True)
@@ -30,8 +31,9 @@ class EvalArgs:
 
 
 def run_eval(args: EvalArgs) -> dict:
-    from uw3dgs.engine.evaluator import evaluate_views, load_trained, write_json
+    from uw3dgs.engine.evaluator import evaluate_views, load_trained
     from uw3dgs.engine.trainer import resolve_device
+    from uw3dgs.utils.io import write_json
 
     device = resolve_device(args.device)
     config, datamanager, model, checkpoint = load_trained(args.load_config, device, step=args.step)
@@ -58,13 +60,13 @@ def print_results(data: dict) -> None:
     table.add_column("value", justify="right")
     for key, value in data["results"].items():
         table.add_row(key, f"{value:.4f}" if isinstance(value, float) else str(value))
-    console = Console()
-    console.print(table)
-    console.print(f"written to {data['output_path']}")
+    Console().print(table)  # the result, on stdout; messages go to the shared console (stderr)
+    info(f"metrics written to {data['output_path']}")
 
 
 def entrypoint(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    route_warnings()
     args = tyro.cli(EvalArgs, args=argv, prog="uw-eval", description=__doc__)
     try:
         print_results(run_eval(args))

@@ -18,6 +18,7 @@ from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, generate_scene, medium_parameters
+from uw3dgs.utils.console import info
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,8 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
         generate_scene(args.scene, args.out)
     except ValueError as exc:  # impossible settings, e.g. cameras under the seabed
         exit_with_error(exc, console)
-    console.print(summary(args.scene, args.out, time.perf_counter() - start))
-    console.print(f"Train on it with: uw-train uw3dgs --data {args.out}", soft_wrap=True)
+    console.print(summary(args.scene, args.out, time.perf_counter() - start))  # the result, on stdout
+    info(f"train on it with: uw-train uw3dgs --data {args.out}")
 
 
 if __name__ == "__main__":

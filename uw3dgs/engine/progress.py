@@ -1,8 +1,10 @@
-"""The rich progress bar of training: step, loss, PSNR, Gaussians, steps/s."""
+"""The rich progress bar of training: step, loss, PSNR, Gaussians, steps/s.
+
+It draws on the shared console (`uw3dgs.utils.console.CONSOLE`, stderr), so the `info` / `warn` lines printed
+while it runs go above it instead of tearing it."""
 
 from __future__ import annotations
 
-from rich.console import Console
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -12,12 +14,14 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from uw3dgs.utils.console import CONSOLE
+
 
 class TrainingProgress:
     """Context manager; `update()` once per step. Disabled, it only keeps the speed estimate."""
 
     def __init__(self, total: int, start: int, enabled: bool = True, smoothing: float = 0.9):
-        self.console = Console()
+        self.console = CONSOLE
         self.enabled = enabled
         self.smoothing = smoothing
         self.steps_per_second = 0.0

@@ -34,6 +34,7 @@ from torch.autograd.function import once_differentiable
 from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.utils.console import info
 
 EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
 SOURCE = Path(__file__).parent / "csrc" / "cpu_rasterizer.cpp"
@@ -94,8 +95,7 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
                 os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
             if not (directory / f"{EXTENSION_NAME}.so").exists():
-                print(f"uw3dgs: building the compiled CPU rasterizer into {directory} (first use, about a minute)",
-                      file=sys.stderr, flush=True)
+                info(f"building the compiled CPU rasterizer into {directory} (first use, about a minute)")
             module = cpp_extension.load(
                 name=EXTENSION_NAME,
                 sources=[str(SOURCE)],
@@ -106,6 +106,7 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             )
         except Exception as exc:  # noqa: BLE001 - any build failure means: fall back
             _state["error"] = f"{type(exc).__name__}: {exc}"
+            # a RuntimeWarning, not console.warn: callers (and tests) filter or catch it with `warnings`
             warnings.warn(
                 "uw3dgs: could not build the compiled CPU rasterizer (backend 'cpu'); falling back to the "
                 f"pure-PyTorch reference, which is much slower. Reason: {str(exc).strip()[-500:]}",

@@ -87,6 +87,7 @@ from torch import Tensor
 from uw3dgs.render.projection import Projection, project_gaussians
 from uw3dgs.render.reference import EXP_FLOOR, rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.utils.console import warn
 
 GSPLAT_VERSION = "1.5.3"
 """The gsplat release this glue was written against (the `cuda` extra pins it)."""
@@ -138,7 +139,10 @@ def gsplat_installed() -> bool:
 
 
 def _warn_once(key: str, message: str) -> None:
-    """Warn with `message` the first time `key` comes up in this process, never again."""
+    """Warn with `message` the first time `key` comes up in this process, never again.
+
+    A RuntimeWarning (as is the failed kernel load's), not console.warn: callers (and tests) filter or catch these
+    fallbacks with `warnings`."""
     with _lock:
         if _state.get(key):
             return
@@ -165,12 +169,8 @@ def _import_cuda_kernels() -> Kernels:
     if _C is None:
         raise RuntimeError("gsplat found no CUDA toolkit (nvcc) to build its CUDA extension with")
     if gsplat.__version__ != GSPLAT_VERSION:
-        warnings.warn(
-            f"uw3dgs: the 'gsplat' backend was written and tested against gsplat {GSPLAT_VERSION}, found "
-            f"{gsplat.__version__}; `{INSTALL_HINT}` installs the tested version.",
-            RuntimeWarning,
-            stacklevel=4,
-        )
+        warn(f"the 'gsplat' backend was written and tested against gsplat {GSPLAT_VERSION}, found "
+             f"{gsplat.__version__}; `{INSTALL_HINT}` installs the tested version.")
     return Kernels(
         isect_tiles=_wrapper.isect_tiles,
         isect_offset_encode=_wrapper.isect_offset_encode,

@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 from rich.console import Console
 from rich.markup import escape
 
@@ -21,3 +23,14 @@ def info(message: str) -> None:
 def warn(message: str) -> None:
     """`uw3dgs: warning: <message>`: something the user should act on, training goes on."""
     CONSOLE.print(f"[yellow]uw3dgs: warning:[/yellow] {escape(message)}", soft_wrap=True, highlight=False)
+
+
+def route_warnings() -> None:
+    """Show Python warnings (a backend falling back, a library's deprecation) as `warn` lines on this console
+    instead of warnings' own multi-line format; the commands call it once at start. Code and tests still
+    raise and catch them as warnings."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        warn(f"{message} ({category.__name__})")
+
+    warnings.showwarning = show
