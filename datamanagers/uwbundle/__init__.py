@@ -247,8 +247,8 @@ def _first_image_size(image_root: Path, names: list[str]) -> tuple[int, int]:
 
 
 MAX_BASELINE_SPREAD = 0.1
-"""A rigid rig's SfM baselines should agree within this relative spread (measured 2% on the test capture;
-a model in a wrong local minimum showed 35%)."""
+"""A rigid rig's SfM baselines should agree within this relative spread (what good and wrong models showed:
+docs/uwbundle.md, "First use")."""
 MAX_ROTATION_ERROR_DEG = 3.0
 
 
