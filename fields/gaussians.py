@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.config import InstantiateConfig, Target, check_number, target
 from uw3dgs.registry import FieldSpec
-from uw3dgs.render.sh import eval_sh_split, rgb_to_sh
+from uw3dgs.render.sh import MAX_DEGREE, eval_sh_split, rgb_to_sh
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -25,6 +25,13 @@ class GaussianFieldConfig(InstantiateConfig):
     """Opacity of every initial Gaussian."""
     init_scale_neighbours: int = 3
     """Initial scale = mean distance to this many nearest initial points (isotropic)."""
+
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "sh_degree", ge=0, le=MAX_DEGREE, integer=True)
+        check_number(self, "sh_degree_interval", ge=1, integer=True)
+        check_number(self, "init_opacity", gt=0, lt=1)
+        check_number(self, "init_scale_neighbours", ge=1, integer=True)
 
 
 def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor:

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.config import InstantiateConfig, Target, check_number, target
 from uw3dgs.registry import FieldSpec
 
 RGB = tuple[float, float, float]
@@ -69,6 +69,15 @@ class MediumFieldConfig(InstantiateConfig):
     lands in (their poses, never their pixels), as its colour was seen; False at the range to the nearest
     training camera, the strict protocol that uses no test-view pose."""
 
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "beta_prior", gt=0, each=True)
+        check_number(self, "b_inf_init", ge=0, le=1, each=True)
+        check_number(self, "dark_bins", ge=1, integer=True)
+        check_number(self, "dark_share", gt=0, le=1)
+        check_number(self, "open_water_cells", ge=0, integer=True)
+        check_number(self, "open_water_min_share", ge=0, le=1)
+
 
 @dataclass(frozen=True)
 class MediumGridConfig(MediumFieldConfig):
@@ -85,6 +94,14 @@ class MediumGridConfig(MediumFieldConfig):
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
+
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "resolution", ge=2, integer=True)
+        check_number(self, "components", ge=1, integer=True)
+        check_number(self, "init_std", ge=0)
+        check_number(self, "ray_samples", ge=1, integer=True)
+        check_number(self, "box_padding", ge=0)
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from uw3dgs.cameras import Camera
-from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.config import InstantiateConfig, Target, check_number, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import TrainingCallback
@@ -44,6 +44,10 @@ class GaussianSplattingModelConfig(ModelConfig):
 
     field_slots: ClassVar[dict[str, tuple[str, str]]] = {"gaussian_field": ("gaussians", "gaussians")}
 
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "ssim_lambda", ge=0, le=1)
+
 
 class GaussianSplattingModel(Model):
     config: GaussianSplattingModelConfig
@@ -59,6 +63,9 @@ class GaussianSplattingModel(Model):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return self.gaussians.param_groups()
+
+    def state_keys_resized_in_training(self) -> set[str]:
+        return {f"gaussians.{name}" for name in self.gaussians.param_names}
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
         strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
@@ -96,13 +103,13 @@ class GaussianSplattingModel(Model):
         outputs["rgb"] = self.over_background(outputs.pop("radiance"), outputs["alpha"])
         return outputs
 
-    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
-        """Adds `depth_abs_rel` (rendered against true range) where the dataset has true ranges."""
-        metrics = super().get_eval_metrics(outputs, batch)
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
+        """Adds `depth_abs_rel` (rendered against true range) where the dataset has true ranges; None (missing)
+        where the render covers no pixel with a true surface."""
+        metrics: dict[str, float | None] = dict(super().get_eval_metrics(outputs, batch))
         if "range" in batch:
-            value = range_abs_rel(outputs["range"].detach(), outputs["alpha"].detach(), batch["range"])
-            if value is not None:
-                metrics["depth_abs_rel"] = value
+            metrics["depth_abs_rel"] = range_abs_rel(outputs["range"].detach(), outputs["alpha"].detach(),
+                                                     batch["range"])
         return metrics
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from uw3dgs.cameras import Camera
-from uw3dgs.config import Target, target
+from uw3dgs.config import Target, check_number, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
@@ -50,6 +50,12 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
 
     field_slots: ClassVar[dict[str, tuple[str, str]]] = {**GaussianSplattingModelConfig.field_slots,
                                                          "medium_field": ("medium", "medium")}
+
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "beta_loss_weight", ge=0)
+        check_number(self, "beta_loss_samples", ge=1, integer=True)
+        check_number(self, "depth_loss_weight", ge=0)
 
 
 class UW3DGSModel(GaussianSplattingModel):
@@ -174,7 +180,7 @@ class UW3DGSModel(GaussianSplattingModel):
                 metrics[f"medium/{name}_{channel}"] = v
         return metrics
 
-    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
         metrics = super().get_eval_metrics(outputs, batch)
         if "clean_image" in batch and self.medium is not None:
             uri = outputs["uri"].detach().clamp(0, 1)

@@ -4,15 +4,22 @@ Every knob is a field of a frozen dataclass; `setup()` builds the object the con
 (the `_target` pattern of nerfstudio). Configs are saved as plain YAML (no Python object tags): each
 dataclass becomes a mapping with a `_type` key naming its class, so a run folder's `config.yml`
 is readable, diffable and loadable without executing arbitrary code.
+
+Every config checks its own numbers where they are declared: `check_options()` (called from `__post_init__`)
+raises `OptionError` naming the field; `check_config` runs the checks of a whole config and names the option in
+full (`--optimizers.means.lr`), as the command line and config files do.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import importlib
+import math
 import types
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +44,12 @@ class InstantiateConfig:
 
     _target: Target = target(lambda: object)
 
+    def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
+        """Raise `OptionError(field, reason)` for an option out of range (subclasses extend it: call super)."""
+
     def setup(self, **kwargs: Any) -> Any:
         return self._target(self, **kwargs)
 
@@ -58,50 +71,311 @@ def config_to_dict(value: Any) -> Any:
     return value
 
 
-def _import_config_class(qualname: str) -> type:
+
+# ----------------------------------------------------------------------------------------------------
+# Option checks: every config checks its own numbers in `check_options`, called from `__post_init__`
+
+
+class OptionError(ValueError):
+    """An option's value is out of range. `name` is the field of the config that declares it; once the config's
+    place in the whole config is known (`check_config`), `path` is the full dotted path, and the message names
+    the option as typed on the command line (`--optimizers.means.lr`) or as the key of a config file."""
+
+    def __init__(self, name: str, reason: str, path: tuple[str, ...] | None = None):
+        self.name = name
+        self.reason = reason
+        self.path = path
+        super().__init__(name, reason, path)
+
+    @property
+    def key(self) -> str:
+        """The dotted key in config.yml: `optimizers.means.lr`."""
+        return ".".join(self.path or (self.name,))
+
+    @property
+    def flag(self) -> str:
+        """The command-line option: `--optimizers.means.lr`."""
+        return "--" + self.key.replace("_", "-")
+
+    def at(self, prefix: tuple[str, ...]) -> OptionError:
+        """This error located under `prefix` (the path of the config that raised it)."""
+        return OptionError(self.name, self.reason, (*prefix, *(self.path or (self.name,))))
+
+    def __str__(self) -> str:
+        return f"{self.flag if self.path is not None else self.name} {self.reason}"
+
+
+def _bounds_text(ge: float | None, gt: float | None, le: float | None, lt: float | None) -> str:
+    parts = [f"{op} {v:g}" for op, v in ((">=", ge), (">", gt), ("<=", le), ("<", lt)) if v is not None]
+    return " and ".join(parts)
+
+
+def check_number(config: Any, name: str, *, ge: float | None = None, gt: float | None = None,
+                 le: float | None = None, lt: float | None = None, integer: bool = False, optional: bool = False,
+                 each: bool = False) -> None:
+    """Raise `OptionError` unless `config.<name>` is a finite number (a whole number with `integer`) within the
+    bounds; None passes with `optional`; `each` checks every element of a tuple."""
+    value = getattr(config, name)
+    if value is None and optional:
+        return
+    kind = "a whole number" if integer else "a finite number"
+    bounds = _bounds_text(ge, gt, le, lt)
+    want = f"{kind} {bounds}".strip() if not each else f"numbers each {bounds or 'finite'}"
+    for v in (value if each and isinstance(value, (tuple, list)) else (value,)):
+        ok = not isinstance(v, bool) and (isinstance(v, int) if integer else isinstance(v, (int, float)))
+        ok = ok and (integer or math.isfinite(v))
+        ok = ok and (ge is None or v >= ge) and (gt is None or v > gt) and (le is None or v <= le) and \
+            (lt is None or v < lt)
+        if not ok:
+            raise OptionError(name, f"must be {want}, got {value!r}")
+
+
+_DEFERRED: contextvars.ContextVar[bool] = contextvars.ContextVar("uw3dgs_deferred_checks", default=False)
+
+
+@contextlib.contextmanager
+def deferred_checks() -> Iterator[None]:
+    """Configs built inside skip their own checks; the caller then runs `check_config` on the whole config,
+    which knows where each config sits and so names the option in full (used while parsing the command line
+    and while reading a config file)."""
+    token = _DEFERRED.set(True)
+    try:
+        yield
+    finally:
+        _DEFERRED.reset(token)
+
+
+def check_now(config: Any) -> None:
+    """Call from `__post_init__`: run `config.check_options()` unless a whole config is being built
+    (`deferred_checks`), whose builder checks it afterwards with full names."""
+    if not _DEFERRED.get():
+        config.check_options()
+
+
+def check_config(config: Any, prefix: tuple[str, ...] = ()) -> None:
+    """Run `check_options` of `config` and of every config nested in it (dict values too); the first failure
+    is raised as an `OptionError` whose path is the option's full path under `prefix`."""
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        check = getattr(config, "check_options", None)
+        if check is not None:
+            try:
+                check()
+            except OptionError as err:
+                raise err.at(prefix) from None
+        for f in dataclasses.fields(config):
+            if f.name != "_target":
+                check_config(getattr(config, f.name), (*prefix, f.name))
+    elif isinstance(config, dict):
+        for key, value in config.items():
+            check_config(value, (*prefix, str(key)))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Reading configs back: only this project's and registered plugins' classes, values of the annotated types
+
+PLUGIN_GROUPS = ("uw3dgs.methods", "uw3dgs.datamanagers", "uw3dgs.fields")
+
+
+class ConfigTypeError(ValueError):
+    """A value in a config file is not of the type its option is declared with."""
+
+
+def _registered_modules() -> set[str]:
+    """Modules a config file may name classes from, besides `uw3dgs.*`: the top-level packages of the registered
+    plugins' entry points (read from package metadata: nothing is imported), and the modules of the config classes
+    of specs registered at run time (registries already loaded)."""
+    from importlib.metadata import entry_points
+
+    from uw3dgs import registry
+
+    modules = {ep.module.split(".")[0] for group in PLUGIN_GROUPS for ep in entry_points(group=group)}
+
+    def add(value: Any) -> None:
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            modules.add(type(value).__module__)
+            for f in dataclasses.fields(value):
+                add(getattr(value, f.name, None))
+        elif isinstance(value, dict):
+            for v in value.values():
+                add(v)
+
+    for reg in (registry.METHODS, registry.DATAMANAGERS, registry.FIELDS):
+        for spec in (reg._specs or {}).values():
+            add(spec.config)
+    return modules
+
+
+def _module_allowed(module_name: str) -> bool:
+    if module_name == "uw3dgs" or module_name.startswith("uw3dgs."):
+        return True
+    return any(module_name == m or module_name.startswith(m + ".") for m in _registered_modules())
+
+
+def _where(key: str) -> str:
+    return f"{key}: " if key else ""
+
+
+def _import_config_class(qualname: Any, key: str = "") -> type:
+    if not isinstance(qualname, str) or "." not in qualname:
+        raise ConfigTypeError(f"{_where(key)}_type must name a config class as 'module.Class', got {qualname!r}")
     module_name, _, cls_name = qualname.rpartition(".")
+    # the module's name is checked before anything is imported: a config file cannot run the import-time code of
+    # an arbitrary installed module
+    if not _module_allowed(module_name):
+        raise ConfigTypeError(f"{_where(key)}_type '{qualname}' is not a config class of uw3dgs or of a registered "
+                              "plugin (entry points uw3dgs.methods / uw3dgs.datamanagers / uw3dgs.fields); only "
+                              "those can be named in a config file")
     try:
         cls = getattr(importlib.import_module(module_name), cls_name)
     except (ImportError, AttributeError) as exc:
-        raise ValueError(f"config class '{qualname}' cannot be imported ({exc}); is the plugin that "
+        raise ValueError(f"{_where(key)}config class '{qualname}' cannot be imported ({exc}); is the plugin that "
                          "defines it installed?") from exc
     if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
-        raise ValueError(f"'{qualname}' is not a config dataclass")
+        raise ConfigTypeError(f"{_where(key)}'{qualname}' is not a config dataclass")
     return cls
 
 
-def _convert(value: Any, hint: Any) -> Any:
-    """Turn a YAML value back into the type a field is annotated with."""
-    if isinstance(value, dict) and "_type" in value:
-        return config_from_dict(value)
+def _describe(hint: Any) -> str:
+    """A type annotation in words, for error messages."""
     origin = typing.get_origin(hint)
     if origin is typing.Annotated:
-        return _convert(value, typing.get_args(hint)[0])
+        return _describe(typing.get_args(hint)[0])
     if origin in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return value if value is None or len(args) != 1 else _convert(value, args[0])
-    if hint is Path and isinstance(value, str):
-        return Path(value)
-    if origin is tuple and isinstance(value, list):
         args = typing.get_args(hint)
-        item = args[0] if args else Any
-        return tuple(_convert(v, item) for v in value)
-    if origin is dict and isinstance(value, dict):
+        words = [_describe(a) for a in args if a is not type(None)]
+        return " or ".join(words + (["null"] if type(None) in args else []))
+    if origin is typing.Literal:
+        return "one of " + ", ".join(repr(a) for a in typing.get_args(hint))
+    if origin is tuple:
         args = typing.get_args(hint)
-        return {k: _convert(v, args[1] if args else Any) for k, v in value.items()}
+        if len(args) == 2 and args[1] is Ellipsis:
+            return f"a list of {_describe(args[0])} values"
+        return f"a list of {len(args)} values ({', '.join(_describe(a) for a in args)})"
+    if origin is dict:
+        return "a mapping"
+    words = {int: "an integer", float: "a number", bool: "true or false", str: "text", Path: "a path"}
+    if hint in words:
+        return words[hint]
+    if isinstance(hint, type):
+        return f"a {hint.__name__} (a mapping with _type)" if dataclasses.is_dataclass(hint) else hint.__name__
+    return str(hint)
+
+
+def _type_error(value: Any, hint: Any, key: str) -> ConfigTypeError:
+    return ConfigTypeError(f"{_where(key)}expected {_describe(hint)}, got {value!r} ({type(value).__name__})")
+
+
+def _float(value: Any) -> float | int | None:
+    """A YAML number for a float option (an int as it is, as before); YAML 1.1 reads `1e-3` (no dot) as text, so
+    text that is a number counts too."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        return value
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return None
+    return None
+
+
+def _convert(value: Any, hint: Any, key: str = "") -> Any:
+    """Turn a YAML value back into the type a field is annotated with; a value of another type is a
+    `ConfigTypeError` naming the key and the expected type."""
+    origin = typing.get_origin(hint)
+    if origin is typing.Annotated:
+        return _convert(value, typing.get_args(hint)[0], key)
+    if hint is Any or hint is object:
+        return config_from_dict(value, key) if isinstance(value, dict) and "_type" in value else value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None:
+            if type(None) in args:
+                return None
+            raise _type_error(value, hint, key)
+        for arg in (a for a in args if a is not type(None)):
+            try:
+                return _convert(value, arg, key)
+            except ConfigTypeError:
+                continue
+        raise _type_error(value, hint, key)
+    if origin is typing.Literal:
+        if any(value == a and type(value) is type(a) for a in typing.get_args(hint)):
+            return value
+        raise _type_error(value, hint, key)
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise _type_error(value, hint, key)
+        if len(args) == 2 and args[1] is Ellipsis:
+            items = [args[0]] * len(value)
+        elif not args:
+            items = [Any] * len(value)
+        elif len(args) == len(value):
+            items = list(args)
+        else:
+            raise _type_error(value, hint, key)
+        return tuple(_convert(v, t, f"{key}[{i}]") for i, (v, t) in enumerate(zip(value, items, strict=True)))
+    if origin is list:
+        args = typing.get_args(hint)
+        if not isinstance(value, list):
+            raise _type_error(value, hint, key)
+        return [_convert(v, args[0] if args else Any, f"{key}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        args = typing.get_args(hint)
+        if not isinstance(value, dict):
+            raise _type_error(value, hint, key)
+        return {k: _convert(v, args[1] if args else Any, f"{key}.{k}" if key else str(k)) for k, v in value.items()}
+    if hint is bool:
+        if isinstance(value, bool):
+            return value
+        raise _type_error(value, hint, key)
+    if hint is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise _type_error(value, hint, key)
+    if hint is float:
+        number = _float(value)
+        if number is None:
+            raise _type_error(value, hint, key)
+        return number
+    if hint is str:
+        if isinstance(value, str):
+            return value
+        raise _type_error(value, hint, key)
+    if hint is Path:
+        if isinstance(value, str):
+            return Path(value)
+        raise _type_error(value, hint, key)
+    if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+        if not (isinstance(value, dict) and "_type" in value):
+            raise _type_error(value, hint, key)
+        config = config_from_dict(value, key)
+        if not isinstance(config, hint):
+            raise ConfigTypeError(f"{_where(key)}expected {_describe(hint)}, got a {type(config).__name__}")
+        return config
+    if isinstance(value, dict) and "_type" in value:
+        return config_from_dict(value, key)
+    if isinstance(hint, type) and not isinstance(value, hint):
+        raise _type_error(value, hint, key)
     return value
 
 
-def config_from_dict(data: dict[str, Any]) -> Any:
-    """Inverse of `config_to_dict`; unknown keys are an error (a typo must not be ignored)."""
-    cls = _import_config_class(data["_type"])
+def config_from_dict(data: dict[str, Any], key: str = "") -> Any:
+    """Inverse of `config_to_dict`; unknown keys are an error (a typo must not be ignored), and so is a value of
+    another type than its option's (naming the dotted `key` of the value, e.g. `optimizers.means.lr`)."""
+    cls = _import_config_class(data.get("_type"), key)
     hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init and f.name != "_target"}
     unknown = set(data) - names - {"_type"}
     if unknown:
-        raise ValueError(f"{cls.__name__} has no option(s) {sorted(unknown)}")
-    kwargs = {k: _convert(v, hints[k]) for k, v in data.items() if k != "_type"}
-    return cls(**kwargs)
+        raise ValueError(f"{_where(key)}{cls.__name__} has no option(s) {sorted(unknown)}")
+    kwargs = {k: _convert(v, hints[k], f"{key}.{k}" if key else k) for k, v in data.items() if k != "_type"}
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:  # a required option missing
+        raise ConfigTypeError(f"{_where(key)}{cls.__name__}: {exc}") from exc
 
 
 def save_config(config: Any, path: Path) -> None:
@@ -110,16 +384,35 @@ def save_config(config: Any, path: Path) -> None:
 
 
 def load_config(path: Path) -> Any:
+    """Read a config.yml: plain YAML only (no Python tags), classes of uw3dgs and its registered plugins only,
+    every value of its option's type and within its option's range; each failure is one line naming the file."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file {path} does not exist; pass the config.yml of a run folder "
                                 "(outputs/<scene>/<method>/<timestamp>/config.yml)")
-    data = yaml.safe_load(path.read_text())
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ValueError(f"{path}: not a plain YAML config{where}: {problem}; configs hold plain values only (no "
+                         "Python tags): fix that line") from err
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: cannot be read ({err})") from err
     if not isinstance(data, dict) or "_type" not in data:
         raise ValueError(f"{path} is not a uw3dgs config (no '_type' key at the top)")
     try:
-        return config_from_dict(data)
+        with deferred_checks():
+            config = config_from_dict(data)
+        check_config(config)
+    except OptionError as err:
+        raise ValueError(f"{path}: {err.key} {err.reason} (the option {err.flag}); fix that value in the file") \
+            from err
+    except ConfigTypeError as err:
+        raise ValueError(f"{path}: {err}; fix that value in the file") from err
     except ValueError as err:
         raise ValueError(f"{path}: {err}. A typo, or a run written by another uw3dgs version whose options "
                          "have since been renamed or removed: fix or delete those lines (see `uw-train METHOD "
                          "--help` for the current options)") from err
+    return config

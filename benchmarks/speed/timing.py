@@ -42,7 +42,7 @@ def training_step(config: Path, scratch: Path) -> tuple[Callable[[], None], Any]
     copy = scratch / "bench" / saved.method_name / "run" / CHECKPOINT_DIR
     copy.mkdir(parents=True)
     shutil.copy(checkpoint, copy / checkpoint.name)
-    trainer = Trainer(dataclasses.replace(saved, resume=True, progress=False, output_dir=scratch,
+    trainer = Trainer(dataclasses.replace(saved, resume=True, load_config=None, progress=False, output_dir=scratch,
                                           experiment_name="bench", timestamp="run"))
     trainer.setup()
     step = [trainer.start_step]

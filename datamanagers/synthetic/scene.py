@@ -21,6 +21,8 @@ import pycolmap
 from PIL import Image
 from rich.progress import Progress
 
+from uw3dgs.config import OptionError, check_now, check_number
+
 GENERATOR_VERSION = 2
 """Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""
 
@@ -109,17 +111,33 @@ class SyntheticSceneConfig:
     """Share of points that are outliers scattered in the camera frusta between the near and far range."""
 
     def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
         """Reject settings the generator cannot honour, naming the knob (they usually come from flags)."""
-        for name in ("num_views", "width", "height", "supersample", "lawnmower_lines", "terrain_size",
-                     "terrain_resolution", "ripple_wavelength"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.march_steps < 2:
-            raise ValueError(f"march_steps must be at least 2, got {self.march_steps}")
-        if not 0 < self.fov_deg < 180:
-            raise ValueError(f"fov_deg must be between 0 and 180, got {self.fov_deg}")
-        if not 0 <= self.outlier_fraction <= 1:
-            raise ValueError(f"outlier_fraction must be in [0, 1], got {self.outlier_fraction}")
+        check_number(self, "seed", ge=0, integer=True)
+        for name in ("num_views", "width", "height", "supersample", "lawnmower_lines", "num_points"):
+            check_number(self, name, ge=1, integer=True)
+        for name in ("num_rocks", "num_specks", "num_dark_patches"):
+            check_number(self, name, ge=0, integer=True)
+        check_number(self, "march_steps", ge=2, integer=True)
+        for name in ("terrain_size", "terrain_resolution", "ripple_wavelength", "altitude", "loop_radius"):
+            check_number(self, name, gt=0)
+        for name in ("path_length", "line_spacing", "pose_jitter", "angle_jitter_deg", "relief", "ripple_amplitude",
+                     "point_noise", "medium_strength"):
+            check_number(self, name, ge=0)
+        check_number(self, "fov_deg", gt=0, lt=180)
+        check_number(self, "tilt_deg", ge=0, le=90)
+        check_number(self, "sun_elevation_deg", gt=0, le=90)
+        check_number(self, "sun_azimuth_deg")
+        for name in ("ambient", "dark_patch_albedo", "outlier_fraction"):
+            check_number(self, name, ge=0, le=1)
+        for name in ("beta_D", "beta_B"):
+            check_number(self, name, ge=0, each=True)
+        check_number(self, "B_inf", ge=0, le=1, each=True)
+        check_number(self, "dark_patch_radius", gt=0, each=True)
+        if self.dark_patch_radius[0] > self.dark_patch_radius[1]:
+            raise OptionError("dark_patch_radius", f"must be (smallest, largest), got {self.dark_patch_radius}")
 
 
 def cache_key(config: SyntheticSceneConfig) -> str:
@@ -667,6 +685,8 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
     gt/medium.json is written last: its presence marks a complete scene (useful for caches).
     """
     out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"{out_dir} is a file, not a folder; write the scene to a new or empty folder")
     if out_dir.exists() and any(out_dir.iterdir()):
         # Never mix with (or delete) what is there: stale views of another scene would corrupt this one.
         raise ValueError(f"{out_dir} is not empty; write the scene to a new or empty folder")

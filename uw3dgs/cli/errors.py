@@ -10,8 +10,10 @@ from rich.console import Console
 from rich.markup import escape
 
 
-def exit_with_error(exc: BaseException, console: Console | None = None, hint: str = "") -> NoReturn:
-    """Print `error: <message>` and exit with status 2; with UW3DGS_DEBUG set, re-raise for the traceback.
+def exit_with_error(exc: BaseException, console: Console | None = None, hint: str = "",
+                    message: str | None = None) -> NoReturn:
+    """Print `error: <message>` (by default `str(exc)`) and exit with status 2; with UW3DGS_DEBUG set, re-raise for
+    the traceback.
 
     The message is not wrapped (paths in it stay copyable) and brackets in it are not read as markup. It goes to
     `console` (the command's own, for its results), by default a new one on stdout: the command's last word, where
@@ -19,7 +21,7 @@ def exit_with_error(exc: BaseException, console: Console | None = None, hint: st
     """
     if os.environ.get("UW3DGS_DEBUG"):
         raise exc
-    text = f"[bold red]error:[/bold red] {escape(str(exc))}"
+    text = f"[bold red]error:[/bold red] {escape(str(exc) if message is None else message)}"
     if hint:
         text += f"\n{escape(hint)}"
     (console or Console()).print(text, soft_wrap=True)

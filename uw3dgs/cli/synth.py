@@ -17,8 +17,10 @@ from rich.console import Console
 from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
+from uw3dgs.config import check_config, deferred_checks
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, generate_scene, medium_parameters
 from uw3dgs.utils.console import info
+from uw3dgs.utils.io import describe_os_error, unwritable_reason
 
 
 @dataclass(frozen=True)
@@ -59,13 +61,23 @@ def summary(config: SyntheticSceneConfig, out: Path, seconds: float) -> Table:
 
 
 def entrypoint(argv: Sequence[str] | None = None) -> None:
-    args = tyro.cli(SynthArgs, args=argv, prog="uw-synth")
     console = Console()
+    try:
+        with deferred_checks():  # the scene's checks run below, naming the option as typed (--medium-strength)
+            args = tyro.cli(SynthArgs, args=argv, prog="uw-synth")
+        check_config(args.scene)
+        problem = unwritable_reason(args.out, folder=True)
+        if problem is not None:
+            raise ValueError(f"--out {args.out}: {problem}")
+    except ValueError as exc:
+        exit_with_error(exc, console)
     start = time.perf_counter()
     try:
         generate_scene(args.scene, args.out)
     except ValueError as exc:  # impossible settings, e.g. cameras under the seabed
         exit_with_error(exc, console)
+    except OSError as exc:  # a folder that became unwritable, a full disk
+        exit_with_error(exc, console, message=describe_os_error(exc))
     console.print(summary(args.scene, args.out, time.perf_counter() - start))  # the result, on stdout
     info(f"train on it with: uw-train uw3dgs --data {args.out}")
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import sys
 from pathlib import Path
 
@@ -10,12 +11,15 @@ import tyro
 from rich.console import Console
 
 from uw3dgs.cli.errors import exit_with_error
-from uw3dgs.config import load_config
+from uw3dgs.config import check_config, deferred_checks, load_config
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.registry import METHODS
 from uw3dgs.utils.console import route_warnings
+from uw3dgs.utils.io import describe_os_error
 
 USER_ERRORS = (FileNotFoundError, ValueError, RuntimeError)
+EXIT_INTERRUPTED = 130
+"""Exit status of a run stopped by Ctrl-C (128 + SIGINT); SIGTERM gives 143 (128 + SIGTERM)."""
 
 
 def _flag_value(argv: list[str], flag: str) -> str | None:
@@ -48,31 +52,55 @@ def parse_config(argv: list[str]) -> TrainConfig:
         saved: TrainConfig = load_config(Path(load))
         if saved.method_name not in defaults:
             raise ValueError(f"{load} was trained with method '{saved.method_name}', which is not installed")
-        defaults[saved.method_name] = dataclasses.replace(saved, load_config=Path(load))
+        # --resume is never inherited from a saved config: only the flag continues a run
+        defaults[saved.method_name] = dataclasses.replace(saved, load_config=Path(load), resume=False)
         if not argv or argv[0] not in defaults:
             argv = [saved.method_name, *argv]
     if argv and argv[0] in defaults:
         defaults[argv[0]] = _select_fields(defaults[argv[0]], argv)
     choices = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
-    return tyro.cli(choices, args=argv, prog="uw-train", description="Train a uw3dgs method.")
+    # the configs' own checks run once the whole config is built, so an error names the option in full
+    # (--optimizers.means.lr, --datamanager.scene.width), as typed
+    with deferred_checks():
+        config = tyro.cli(choices, args=argv, prog="uw-train", description="Train a uw3dgs method.")
+    check_config(config)
+    return config
 
 
 def entrypoint(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     route_warnings()
     console = Console()
+    hint = "(set UW3DGS_DEBUG=1 for the full traceback)"
     try:
         config = parse_config(argv)
-        from uw3dgs.engine.trainer import Trainer  # after parsing, so --help stays fast
+        from uw3dgs.engine.trainer import Trainer, TrainingInterrupted  # after parsing, so --help stays fast
+    except USER_ERRORS as exc:
+        exit_with_error(exc, console, hint=hint)
+    except KeyboardInterrupt:
+        console.print("Interrupted.")
+        sys.exit(EXIT_INTERRUPTED)
 
+    try:
         trainer = Trainer(config)
         trainer.setup()
         console.print(f"[bold]uw-train[/bold] {config.method_name}: {trainer.datamanager.scene_name}, "
                       f"{len(trainer.datamanager.train_indices)} train / {len(trainer.datamanager.test_indices)} "
                       f"test views, device {trainer.device}, run folder {trainer.run_dir}", soft_wrap=True)
         run_dir = trainer.train()
-    except USER_ERRORS as exc:
-        exit_with_error(exc, console, hint="(set UW3DGS_DEBUG=1 for the full traceback)")
+    except TrainingInterrupted as exc:  # the trainer printed the checkpoint and how to resume: no traceback
+        if os.environ.get("UW3DGS_DEBUG"):
+            raise
+        sys.exit(128 + exc.signum)
+    except KeyboardInterrupt:  # Ctrl-C twice, or before training started (the trainer said how to resume)
+        if os.environ.get("UW3DGS_DEBUG"):
+            raise
+        console.print("Interrupted.")
+        sys.exit(EXIT_INTERRUPTED)
+    except USER_ERRORS as exc:  # FileNotFoundError among them: its message names the file and the fix
+        exit_with_error(exc, console, hint=hint)
+    except OSError as exc:  # an unwritable or file-shaped output path, a full disk: one line naming the path
+        exit_with_error(exc, console, hint=hint, message=describe_os_error(exc))
     # soft_wrap: paths stay on one line, so they can be copied
     console.print(f"Done. Evaluate with: uw-eval {run_dir / 'config.yml'}   |   tensorboard --logdir {run_dir}",
                   soft_wrap=True)

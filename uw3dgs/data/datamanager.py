@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 
 import torch
 
-from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.config import InstantiateConfig, Target, check_number, target
 from uw3dgs.data.covisibility import covisible_mask
 from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.downscale import FactorTooLargeError
@@ -46,6 +46,10 @@ class DataManagerConfig(InstantiateConfig):
     def can_read(cls, path: Path) -> bool:
         """Whether `path` looks like this datamanager's layout (used when `--data` is given)."""
         return False
+
+    def check_options(self) -> None:
+        super().check_options()
+        check_number(self, "llffhold", ge=0, integer=True)
 
     def make_parser(self) -> DataParser:
         """The parser that reads this plugin's format, configured by this config."""

@@ -97,6 +97,13 @@ def read_poses_bounds(path: Path, num_images: int, images_source: str) -> LlffPo
             "poses_bounds.npy needs one row per image, in file-name order. Remove the images that have no "
             "pose, or regenerate poses_bounds.npy (LLFF's imgs2poses.py)"
         )
+    finite = np.isfinite(rows).all(axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        rows_text = f"row {bad[0]}" + (f" (and {len(bad) - 1} more)" if len(bad) > 1 else "")
+        raise DatasetError(f"{path}: {rows_text} (counted from 0: image number {bad[0] + 1} by file name) holds "
+                           "NaN or infinite numbers; restore the file, regenerate it (LLFF's imgs2poses.py), or "
+                           "delete it to use sparse/0 only")
     mats = rows[:, :15].reshape(-1, 3, 5)
     viewmats = np.tile(np.eye(4), (len(rows), 1, 1))
     for k, m in enumerate(mats):

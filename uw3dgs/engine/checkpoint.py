@@ -1,8 +1,10 @@
-"""Checkpoints: written atomically (temp file + rename), found by step, pruned to the newest few."""
+"""Checkpoints: written atomically (temp file + rename), found by step, pruned to the newest few; and the check
+that a model's parameters are finite (the Trainer runs it before every checkpoint, uw-eval before evaluating)."""
 
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -12,6 +14,26 @@ from uw3dgs.utils.io import atomic_file
 
 CHECKPOINT_DIR = "checkpoints"
 _NAME = re.compile(r"^step-(\d+)\.ckpt$")
+
+
+@torch.no_grad()
+def nonfinite(named: Mapping[str, torch.Tensor | Iterable[torch.Tensor]]) -> list[str]:
+    """The names (in order) whose tensor(s) hold a NaN or an infinity; integer tensors are skipped.
+
+    One min/max reduction per tensor (NaN propagates through both; an infinity is the min or the max) and one
+    device sync for all of them: about 1 ms for 100,000 Gaussians with degree-3 SH on two CPU threads, where
+    `torch.isfinite(p).all()` takes 10 ms (docs/training.md, "What is guaranteed")."""
+    names, extremes = [], []
+    for name, tensors in named.items():
+        for t in [tensors] if isinstance(tensors, torch.Tensor) else tensors:
+            if t.is_floating_point() and t.numel():
+                names.append(name)
+                lo_hi = torch.stack(torch.aminmax(t.detach())).float()
+                extremes.append(lo_hi if not extremes else lo_hi.to(extremes[0].device))
+    if not extremes:
+        return []
+    finite = torch.isfinite(torch.stack(extremes)).all(dim=1).tolist()
+    return list(dict.fromkeys(n for n, ok in zip(names, finite, strict=True) if not ok))
 
 
 def checkpoint_path(run_dir: Path, step: int) -> Path:

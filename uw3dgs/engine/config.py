@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from uw3dgs.config import OptionError, check_now, check_number
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManagerConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.models.base import ModelConfig
@@ -71,3 +72,16 @@ class TrainConfig:
     datamanager: Annotated[DataManagerConfig, tyro.conf.arg(constructor_factory=datamanager_choices)] = field(
         default_factory=AutoDataManagerConfig)
     """Which dataset reader; a subcommand after the options (default: auto)."""
+
+    def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
+        for name in ("max_num_iterations", "steps_per_log", "steps_per_save", "steps_per_eval_image",
+                     "steps_per_eval_all_images", "keep_checkpoints", "downscale_factor"):
+            check_number(self, name, ge=1, integer=True)
+        for name in ("timestamp", "experiment_name"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, str) or value in ("", ".", "..") or "/" in value
+                                      or "\\" in value):
+                raise OptionError(name, f"must be one folder name (no '/', not empty, '.' or '..'), got {value!r}")

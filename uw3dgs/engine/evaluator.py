@@ -11,7 +11,13 @@ from rich.progress import track
 
 from uw3dgs.config import load_config
 from uw3dgs.data.datamanager import DataManager
-from uw3dgs.engine.checkpoint import checkpoint_path, latest_checkpoint, list_checkpoints, load_checkpoint
+from uw3dgs.engine.checkpoint import (
+    checkpoint_path,
+    latest_checkpoint,
+    list_checkpoints,
+    load_checkpoint,
+    nonfinite,
+)
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.models.base import Model
 from uw3dgs.utils.images import write_image
@@ -40,13 +46,23 @@ def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True
                 mask = batch["covisible"].float()[..., None].expand(-1, -1, 3)
                 write_image(save_dir / "covisible" / f"{stem}.png", mask)
     model.train(was_training)
-    summary: dict[str, float] = dict(model.get_eval_summary(datamanager.scene))
-    for key in (per_image[0].keys() if per_image else []):
-        if key == "image":
+    summary: dict[str, float | None] = dict(model.get_eval_summary(datamanager.scene))
+    # a metric a view cannot give (no covered pixel for depth_abs_rel) is missing in that view's row (None in the
+    # JSON); the mean and std are over the views that have it, and None where no view has it
+    keys = [k for k in dict.fromkeys(k for row in per_image for k in row) if k != "image"]
+    for row in per_image:
+        for key in keys:
+            row.setdefault(key, None)
+    for key in keys:
+        present = [row[key] for row in per_image if row[key] is not None]
+        if not present:
+            summary[key] = summary[f"{key}_std"] = None
             continue
-        values = torch.tensor([row[key] for row in per_image], dtype=torch.float64)
+        values = torch.tensor(present, dtype=torch.float64)
         summary[key] = float(values.mean())
         summary[f"{key}_std"] = float(values.std(unbiased=False))
+        if len(present) < len(per_image):
+            summary[f"{key}_views"] = len(present)
     return {"per_image": per_image, "summary": summary}
 
 
@@ -69,5 +85,10 @@ def load_trained(config_path: Path, device: torch.device | str = "cpu",
     model = config.model.setup(scene=datamanager.scene, train_indices=datamanager.train_indices)
     state = load_checkpoint(checkpoint, "cpu")
     model.load_checkpoint_state(state["model"])
+    bad = nonfinite(model.state_dict())
+    if bad:  # uw3dgs never writes such a checkpoint; one from elsewhere (or an older version) is refused
+        raise ValueError(f"{checkpoint}: the model's parameters {', '.join(bad)} are NaN or infinite (the run "
+                         "diverged); evaluate an earlier checkpoint with --step, or train again with lower learning "
+                         "rates")
     model.to(device)
     return config, datamanager, model, checkpoint

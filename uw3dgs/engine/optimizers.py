@@ -14,6 +14,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from uw3dgs.config import OptionError, check_now, check_number
+
 
 @dataclass(frozen=True)
 class ParamGroupConfig:
@@ -26,6 +28,18 @@ class ParamGroupConfig:
     """If set, the rate decays log-linearly from lr to lr_final (3DGS's position schedule); else constant."""
     decay_steps: int | None = None
     """Steps of the decay; None follows --max-num-iterations."""
+
+    def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
+        check_number(self, "lr", ge=0)  # 0 freezes the group (e.g. the oracle medium of --model.medium.init truth)
+        check_number(self, "eps", ge=0)
+        check_number(self, "lr_final", gt=0, optional=True)
+        check_number(self, "decay_steps", ge=1, integer=True, optional=True)
+        if self.lr_final is not None and self.lr == 0:
+            raise OptionError("lr", "must be > 0 when lr_final is set (the rate decays from lr to lr_final on a "
+                                    "log scale), got 0")
 
 
 def exponential_decay(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:

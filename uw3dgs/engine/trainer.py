@@ -1,10 +1,16 @@
 """The generic training loop. It knows no method: the model supplies parameter groups, outputs,
-losses, metrics and callbacks; the config supplies learning rates and schedules."""
+losses, metrics and callbacks; the config supplies learning rates and schedules.
+
+What it guarantees about the run folder, resuming, signals and diverged parameters is listed in
+docs/training.md ("What is guaranteed")."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import signal
+import sys
+import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -14,18 +20,74 @@ import torch
 
 from uw3dgs.config import config_to_dict, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManager
-from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint, save_checkpoint
+from uw3dgs.engine.checkpoint import (
+    CHECKPOINT_DIR,
+    checkpoint_path,
+    latest_checkpoint,
+    load_checkpoint,
+    nonfinite,
+    save_checkpoint,
+)
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.engine.progress import TrainingProgress
+from uw3dgs.engine.run_folder import (
+    RunFolderError,
+    RunLock,
+    check_fresh,
+    remove_stale_temp_files,
+    shape_mismatch,
+)
 from uw3dgs.engine.writer import EventWriter
 from uw3dgs.models.base import Model
-from uw3dgs.utils.io import write_json
+from uw3dgs.utils.io import unwritable_reason, write_json
 
 
 class TrainingDivergedError(RuntimeError):
-    """The loss became NaN or infinite; the last checkpoint is untouched."""
+    """The loss or a parameter became NaN or infinite; the last checkpoint is untouched."""
+
+
+class TrainingInterrupted(Exception):
+    """SIGINT (Ctrl-C) or SIGTERM stopped the run after a complete step, whose checkpoint was written; a command
+    exits with 128 + `signum` (130, 143)."""
+
+    def __init__(self, signum: int, step: int, checkpoint: Path, message: str):
+        super().__init__(message)
+        self.signum, self.step, self.checkpoint = signum, step, checkpoint
+
+
+class StopRequests:
+    """While training: the first SIGINT or SIGTERM asks the loop to stop after the current step (the state after a
+    complete step is consistent: it is checkpointed); a second SIGINT stops at once (KeyboardInterrupt: the last
+    periodic checkpoint stands). Handlers are installed in the main thread only, and restored on exit."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopRequests:
+        if threading.current_thread() is threading.main_thread():
+            for signum in (signal.SIGINT, signal.SIGTERM):
+                self._previous[signum] = signal.signal(signum, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.signum is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        if self.signum is None:
+            self.signum = signum
+            try:  # a handler may run inside a write to stderr: never let the notice break the run
+                sys.stderr.write(f"\n{signal.Signals(signum).name}: stopping after this step and writing its "
+                                 "checkpoint (Ctrl-C again stops at once, without it)\n")
+                sys.stderr.flush()
+            except (RuntimeError, OSError, ValueError):
+                pass
 
 
 def resolve_device(name: str) -> torch.device:
@@ -50,18 +112,61 @@ class Trainer:
         self.config = config
         self.device = resolve_device(config.device)
         self.start_step = 0
+        self.lock: RunLock | None = None
+        self._resumed_from: Path | None = None
+        self._checked_step = -1
 
     def setup(self) -> None:
+        """Read the data, take the run folder (its lock) and build or restore the model. Nothing but the lock file
+        is written to the run folder before every check has passed; the lock is held until `train()` ends (or
+        `close()`)."""
         config = self.config
+        resume_here = config.resume and config.load_config is not None
+        problem = unwritable_reason(Path(config.load_config).parent if resume_here else config.output_dir, folder=True)
+        if problem is not None:  # before the data is read, which may take long
+            raise RunFolderError(f"{'the run folder' if resume_here else '--output-dir'}: {problem}")
         torch.manual_seed(config.seed)
         self.datamanager: DataManager = config.datamanager.setup(
             data=config.data, downscale_factor=config.downscale_factor, device=self.device, seed=config.seed)
-        self.run_dir = run_dir_for(config, self.datamanager.scene_name)
+        self.run_dir = self._run_dir()
+        try:
+            self._setup_in_run_dir()
+        except BaseException:
+            self.close()
+            raise
+
+    def _run_dir(self) -> Path:
+        """`--resume` with `--load-config` continues the run in the folder holding that config.yml (a copied or
+        moved run resumes where it is, never in the folder it was copied from); otherwise
+        OUTPUT_DIR/EXPERIMENT/METHOD/TIMESTAMP."""
+        if self.config.resume and self.config.load_config is not None:
+            return Path(self.config.load_config).parent
+        return run_dir_for(self.config, self.datamanager.scene_name)
+
+    def _setup_in_run_dir(self) -> None:
+        config = self.config
+        if config.resume and not self.run_dir.is_dir():
+            raise FileNotFoundError(f"--resume: no checkpoint to resume from, {self.run_dir} does not exist; pass "
+                                    "the run's config with --load-config (or its --timestamp), or start without "
+                                    "--resume")
+        self.lock = RunLock(self.run_dir)
+        self.lock.acquire()
+        if not config.resume:
+            check_fresh(self.run_dir)
+        remove_stale_temp_files(self.run_dir)
         checkpoint = self._checkpoint_to_resume()
         self.model: Model = config.model.setup(scene=self.datamanager.scene,
                                                train_indices=self.datamanager.train_indices)
         if checkpoint is not None:
+            problem = shape_mismatch(self.model, checkpoint, config, self._resumed_from)
+            if problem is not None:
+                raise ValueError(problem)
             self.model.load_checkpoint_state(checkpoint["model"])
+            bad = nonfinite(self.model.param_groups())
+            if bad:
+                raise TrainingDivergedError(
+                    f"{self._resumed_from}: parameters of group(s) {', '.join(bad)} are NaN or infinite; delete "
+                    "this checkpoint to resume from the one before it")
         self.model.to(self.device)
         if checkpoint is None:
             self.model.initialize_from_data(self.datamanager.scene, self.datamanager.train_indices)
@@ -70,20 +175,29 @@ class Trainer:
         self.callbacks = self.model.get_training_callbacks(self.optimizers, config.max_num_iterations)
         if checkpoint is not None:
             self._restore(checkpoint)
-        save_config(config, self.run_dir / "config.yml")
+        # --resume and --load-config say how this invocation started, not what the run is: the saved config starts a
+        # new run (and never points a later --resume at another folder)
+        save_config(dataclasses.replace(config, resume=False, load_config=None), self.run_dir / "config.yml")
         scene = self.datamanager.scene
         write_json(self.run_dir / "dataparser_transforms.json",
                    {"dataset_center": list(scene.dataset_center), "dataset_scale": scene.dataset_scale,
                     "meaning": "world = (dataset - dataset_center) / dataset_scale"})
         self.writer = EventWriter(self.run_dir)
 
+    def close(self) -> None:
+        """Release the run folder (done by `train()` when it ends, however it ends)."""
+        if self.lock is not None:
+            self.lock.release()
+
     def _checkpoint_to_resume(self) -> dict[str, Any] | None:
         if not self.config.resume:
             return None
         path = latest_checkpoint(self.run_dir)
         if path is None:
-            raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir / 'checkpoints'}; pass the run's "
-                                    "config with --load-config (or its --timestamp) or start without --resume")
+            raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir / CHECKPOINT_DIR} (the run stopped "
+                                    "before its first save); start it again without --resume under another "
+                                    f"--timestamp, or after deleting {self.run_dir}")
+        self._resumed_from = path
         return load_checkpoint(path, "cpu")
 
     def _restore(self, checkpoint: dict[str, Any]) -> None:
@@ -106,7 +220,24 @@ class Trainer:
                 "config": config_to_dict(self.config)}
 
     def save(self, step: int) -> Path:
+        """Write the checkpoint of `step`, after checking that every parameter is finite (never a NaN checkpoint)."""
+        self.check_parameters(step)
         return save_checkpoint(self.run_dir, step, self.checkpoint_state(step), self.config.keep_checkpoints)
+
+    def check_parameters(self, step: int) -> None:
+        """Stop the run like a non-finite loss does if a parameter group holds NaN or an infinity. Run every
+        --steps-per-log steps and before every evaluation and checkpoint (about 1 ms per 100,000 Gaussians)."""
+        if self._checked_step == step:
+            return
+        bad = nonfinite(self.model.param_groups())
+        if bad:
+            flags = ", ".join(f"--optimizers.{name.replace('_', '-')}.lr" for name in bad)
+            raise TrainingDivergedError(
+                f"step {step}: parameters of group(s) {', '.join(bad)} are NaN or infinite after the optimizer step "
+                "(checked every --steps-per-log steps and before every checkpoint); nothing was written for this "
+                f"step. Resume from the last checkpoint in {self.run_dir / CHECKPOINT_DIR} with --load-config "
+                f"{self.run_dir / 'config.yml'} --resume, after lowering those groups' learning rates ({flags})")
+        self._checked_step = step
 
     # -- the loop --
 
@@ -140,22 +271,45 @@ class Trainer:
         last = config.max_num_iterations
         step = self.start_step
         self.model.train()
-        with TrainingProgress(config.max_num_iterations, self.start_step, enabled=config.progress) as progress:
-            try:
-                while step < last:
-                    step += 1
-                    t0 = time.perf_counter()
-                    losses, metrics = self.train_step(step)
-                    progress.update(step, float(losses["loss"]), metrics, time.perf_counter() - t0)
-                    self._log(step, losses, metrics, progress.steps_per_second)
-                    self._periodic(step, last)
-            except KeyboardInterrupt:
-                # a step cut in half is not a state to save: the last periodic checkpoint is
-                progress.console.print(f"Interrupted at step {step}. Resume from the last checkpoint with "
-                                       f"uw-train --load-config {self.run_dir / 'config.yml'} --resume")
-                raise
-        self.writer.close()
+        try:
+            if step >= last:  # a resumed run that is already done: not "Done" with nothing trained
+                raise ValueError(f"--resume: {self._resumed_from} is at step {step} and --max-num-iterations is "
+                                 f"{last}: nothing left to train; raise --max-num-iterations, or evaluate with "
+                                 f"uw-eval {self.run_dir / 'config.yml'}")
+            with StopRequests() as stop, TrainingProgress(config.max_num_iterations, self.start_step,
+                                                          enabled=config.progress) as progress:
+                try:
+                    while step < last:
+                        step += 1
+                        t0 = time.perf_counter()
+                        losses, metrics = self.train_step(step)
+                        if step % config.steps_per_log == 0 or step == last:
+                            self.check_parameters(step)
+                        progress.update(step, float(losses["loss"]), metrics, time.perf_counter() - t0)
+                        self._log(step, losses, metrics, progress.steps_per_second)
+                        self._periodic(step, last)
+                        if stop.signum is not None and step < last:
+                            self._stop(step, stop.signum, progress.console)
+                except KeyboardInterrupt:
+                    # a step cut in half is not a state to save: the last periodic checkpoint is
+                    progress.console.print(f"Interrupted at step {step}. Resume from the last checkpoint with "
+                                           f"uw-train --load-config {self.run_dir / 'config.yml'} --resume",
+                                           soft_wrap=True)
+                    raise
+        finally:
+            self.writer.close()
+            self.close()
         return self.run_dir
+
+    def _stop(self, step: int, signum: int, console: Any) -> None:
+        """After a complete step: its checkpoint (unless `_periodic` just wrote it), how to resume, then stop."""
+        path = checkpoint_path(self.run_dir, step)
+        if not path.is_file():
+            path = self.save(step)
+        message = (f"Stopped by {signal.Signals(signum).name} after step {step}; checkpoint {path}. Resume with: "
+                   f"uw-train --load-config {self.run_dir / 'config.yml'} --resume")
+        console.print(message, soft_wrap=True, highlight=False, markup=False)
+        raise TrainingInterrupted(signum, step, path, message)
 
     def _log(self, step: int, losses: dict[str, torch.Tensor], metrics: dict[str, float], sps: float) -> None:
         if step % self.config.steps_per_log and step != self.config.max_num_iterations:
@@ -168,11 +322,16 @@ class Trainer:
 
     def _periodic(self, step: int, last: int) -> None:
         config = self.config
-        if step % config.steps_per_eval_image == 0 and self.datamanager.test_indices:
+        eval_image = step % config.steps_per_eval_image == 0 and self.datamanager.test_indices
+        eval_all = step % config.steps_per_eval_all_images == 0 or step == last
+        save = step % config.steps_per_save == 0 or step == last
+        if eval_image or eval_all or save:  # a diverged model is neither evaluated nor saved
+            self.check_parameters(step)
+        if eval_image:
             self._eval_one_image(step)
-        if step % config.steps_per_eval_all_images == 0 or step == last:
+        if eval_all:
             self.eval_all(step)
-        if step % config.steps_per_save == 0 or step == last:
+        if save:
             self.save(step)
 
     @torch.no_grad()
@@ -186,11 +345,12 @@ class Trainer:
         for name, image in self.model.get_image_dict(outputs, batch).items():
             self.writer.image(f"eval_image/{name}", image, step)
         for name, value in self.model.get_eval_metrics(outputs, batch).items():
-            self.writer.scalars({f"eval_image/{name}": value}, step)
+            if value is not None:
+                self.writer.scalars({f"eval_image/{name}": value}, step)
 
     def eval_all(self, step: int) -> dict[str, float]:
         if not self.datamanager.test_indices:
             return {}
         summary = evaluate_views(self.model, self.datamanager, progress=False)["summary"]
-        self.writer.scalars({f"eval/{k}": v for k, v in summary.items()}, step)
+        self.writer.scalars({f"eval/{k}": v for k, v in summary.items() if v is not None}, step)
         return summary

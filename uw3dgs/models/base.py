@@ -34,6 +34,7 @@ class ModelConfig(InstantiateConfig):
             spec = field_spec(getattr(self, selector), kind)
             if type(getattr(self, slot)) is not type(spec.config):
                 object.__setattr__(self, slot, spec.config)
+        super().__post_init__()
 
     def with_field(self, selector: str, name: str) -> ModelConfig:
         """This config with the registered field `name` in `selector`'s slot, at that field's defaults."""
@@ -72,9 +73,10 @@ class Model(nn.Module):
         """Scalars for the progress bar and TensorBoard."""
         return {}
 
-    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
+    def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
         """Per-test-view metrics for evaluation: PSNR and SSIM of 'rgb' against the dataset's image, and the PSNR
-        over the pixels training views see where the dataset tells them ('covisible')."""
+        over the pixels training views see where the dataset tells them ('covisible'). A metric a view cannot give
+        is None (reported missing; means are over the views that have it)."""
         pred = outputs["rgb"].detach().clamp(0, 1)
         metrics = {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
         if "covisible" in batch:
@@ -98,6 +100,11 @@ class Model(nn.Module):
         """Called by the Trainer once on a fresh run, after the model is on its device and before step 1 (never
         on `--resume` or when a trained model is loaded for evaluation): fits that need the training views and
         whose result a checkpoint holds anyway, e.g. a starting medium. Default: nothing."""
+
+    def state_keys_resized_in_training(self) -> set[str]:
+        """state_dict keys whose first dimension changes during training (density control changes the number of
+        Gaussians); `--resume` compares every other shape with the checkpoint's exactly. Default: none."""
+        return set()
 
     def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
         """Load weights saved by `state_dict()` (override when parameter shapes change in training)."""

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
+from uw3dgs.config import OptionError, check_now, check_number
+
 
 @dataclass(frozen=True)
 class RasterSettings:
@@ -27,6 +29,21 @@ class RasterSettings:
     """Early ray termination: a Gaussian that would bring T below this is not blended, nor any after it."""
     backend: str = "auto"
     """Rasterizer backend: 'auto' picks the fastest available for the tensors' device."""
+
+    def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
+        check_number(self, "tile_size", ge=1, integer=True)
+        check_number(self, "near_plane", gt=0)
+        check_number(self, "far_plane", gt=self.near_plane if isinstance(self.near_plane, (int, float)) else 0)
+        check_number(self, "eps2d", ge=0)
+        check_number(self, "alpha_min", ge=0, lt=1)
+        check_number(self, "alpha_max", gt=0, le=1)
+        check_number(self, "transmittance_min", ge=0, lt=1)
+        if self.alpha_min >= self.alpha_max:
+            raise OptionError("alpha_max", f"must be larger than alpha_min ({self.alpha_min:g}), "
+                                           f"got {self.alpha_max:g}")
 
 
 @dataclass

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from uw3dgs.config import check_now, check_number
 from uw3dgs.render.projection import quat_to_rotmat
 from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
 
@@ -47,6 +48,22 @@ class DensificationConfig:
     """After the first reset, prune Gaussians whose screen radius exceeded this fraction of the image."""
     prune_world_size: float = 0.1
     """After the first reset, prune Gaussians larger than this fraction of the scene extent."""
+
+    def __post_init__(self) -> None:
+        check_now(self)
+
+    def check_options(self) -> None:
+        check_number(self, "refine_start", ge=0, integer=True)
+        check_number(self, "refine_every", ge=1, integer=True)
+        check_number(self, "refine_stop", ge=0, integer=True, optional=True)
+        check_number(self, "grad_threshold", ge=0)
+        check_number(self, "percent_dense", gt=0)
+        check_number(self, "split_samples", ge=1, integer=True)
+        check_number(self, "min_opacity", ge=0, lt=1)
+        check_number(self, "reset_opacity_every", ge=0, integer=True)
+        check_number(self, "reset_opacity_value", gt=0, lt=1)
+        check_number(self, "prune_screen_size", gt=0)
+        check_number(self, "prune_world_size", gt=0)
 
 
 class DefaultStrategy:
