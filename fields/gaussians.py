@@ -7,7 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from uw3dgs.config import InstantiateConfig, Target, check_number, target
+from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
 from uw3dgs.render.sh import MAX_DEGREE, eval_sh_split, rgb_to_sh
 

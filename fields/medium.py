@@ -21,7 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from uw3dgs.config import InstantiateConfig, Target, check_number, target
+from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
 
 RGB = tuple[float, float, float]

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from uw3dgs.cameras import Camera
-from uw3dgs.config import InstantiateConfig, Target, check_number, target
+from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import TrainingCallback
@@ -19,6 +19,7 @@ from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
+from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import RasterSettings, rasterize
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from uw3dgs.cameras import Camera
-from uw3dgs.config import Target, check_number, target
+from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
@@ -25,6 +25,7 @@ from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfi
 from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
 from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
 from uw3dgs.metrics.image import psnr, ssim
+from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render.sh import rgb_to_sh
 from uw3dgs.strategy import DensificationConfig

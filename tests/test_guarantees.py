@@ -25,7 +25,7 @@ from uw3dgs.cli.eval import entrypoint as uw_eval
 from uw3dgs.cli.synth import entrypoint as uw_synth
 from uw3dgs.cli.train import entrypoint as uw_train
 from uw3dgs.cli.train import parse_config
-from uw3dgs.config import OptionError, check_config, config_to_dict, deferred_checks, load_config
+from uw3dgs.config import config_to_dict, load_config
 from uw3dgs.data.colmap_dataset import DatasetError
 from uw3dgs.data.seathru_layout import read_seathru_scene
 from uw3dgs.datamanagers.synthetic import cached_scene
@@ -34,6 +34,7 @@ from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.engine.run_folder import LOCK_NAME, RunFolderError, RunLock
 from uw3dgs.engine.trainer import Trainer, TrainingDivergedError, TrainingInterrupted
+from uw3dgs.options import OptionError, check_config, deferred_checks
 from uw3dgs.strategy import DensificationConfig
 
 TINY_SCENE = ["synthetic", "--datamanager.scene.width", "48", "--datamanager.scene.height", "36",

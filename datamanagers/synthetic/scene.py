@@ -21,7 +21,7 @@ import pycolmap
 from PIL import Image
 from rich.progress import Progress
 
-from uw3dgs.config import OptionError, check_now, check_number
+from uw3dgs.options import OptionError, check_now, check_number
 
 GENERATOR_VERSION = 2
 """Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""

@@ -11,8 +11,9 @@ import tyro
 from rich.console import Console
 
 from uw3dgs.cli.errors import exit_with_error
-from uw3dgs.config import check_config, deferred_checks, load_config
+from uw3dgs.config import load_config
 from uw3dgs.engine.config import TrainConfig
+from uw3dgs.options import check_config, deferred_checks
 from uw3dgs.registry import METHODS
 from uw3dgs.utils.console import route_warnings
 from uw3dgs.utils.io import describe_os_error

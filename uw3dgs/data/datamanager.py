@@ -16,11 +16,12 @@ from typing import Any, ClassVar
 
 import torch
 
-from uw3dgs.config import InstantiateConfig, Target, check_number, target
+from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.data.covisibility import covisible_mask
 from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.downscale import FactorTooLargeError
 from uw3dgs.data.scene import SceneData
+from uw3dgs.options import check_number
 
 Batch = dict[str, Any]
 """One view: 'index', 'camera', 'image' [H, W, 3]; plus 'clean_image' and 'range' where known (and, for test

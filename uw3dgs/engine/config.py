@@ -11,10 +11,10 @@ from typing import Annotated, Literal
 
 import tyro
 
-from uw3dgs.config import OptionError, check_now, check_number
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManagerConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.models.base import ModelConfig
+from uw3dgs.options import OptionError, check_now, check_number
 
 
 def datamanager_choices() -> type:

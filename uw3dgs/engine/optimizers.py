@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from uw3dgs.config import OptionError, check_now, check_number
+from uw3dgs.options import OptionError, check_now, check_number
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from uw3dgs.config import OptionError, check_now, check_number
+from uw3dgs.options import OptionError, check_now, check_number
 
 
 @dataclass(frozen=True)

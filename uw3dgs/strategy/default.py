@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.config import check_now, check_number
+from uw3dgs.options import check_now, check_number
 from uw3dgs.render.projection import quat_to_rotmat
 from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
 
