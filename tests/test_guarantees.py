@@ -33,7 +33,8 @@ from uw3dgs.engine.checkpoint import list_checkpoints, load_checkpoint, nonfinit
 from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.engine.run_folder import LOCK_NAME, RunFolderError, RunLock
-from uw3dgs.engine.trainer import Trainer, TrainingDivergedError, TrainingInterrupted
+from uw3dgs.engine.signals import TrainingInterrupted
+from uw3dgs.engine.trainer import Trainer, TrainingDivergedError
 from uw3dgs.options import OptionError, check_config, deferred_checks
 from uw3dgs.strategy import DensificationConfig
 

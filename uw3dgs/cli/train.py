@@ -75,7 +75,8 @@ def entrypoint(argv: list[str] | None = None) -> None:
     hint = "(set UW3DGS_DEBUG=1 for the full traceback)"
     try:
         config = parse_config(argv)
-        from uw3dgs.engine.trainer import Trainer, TrainingInterrupted  # after parsing, so --help stays fast
+        from uw3dgs.engine.signals import TrainingInterrupted  # after parsing, so --help stays fast
+        from uw3dgs.engine.trainer import Trainer
     except USER_ERRORS as exc:
         exit_with_error(exc, console, hint=hint)
     except KeyboardInterrupt:

@@ -9,8 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import signal
-import sys
-import threading
 import time
 from datetime import datetime
 from pathlib import Path
@@ -39,6 +37,7 @@ from uw3dgs.engine.run_folder import (
     remove_stale_temp_files,
     shape_mismatch,
 )
+from uw3dgs.engine.signals import StopRequests, TrainingInterrupted
 from uw3dgs.engine.writer import EventWriter
 from uw3dgs.models.base import Model
 from uw3dgs.utils.io import unwritable_reason, write_json
@@ -46,48 +45,6 @@ from uw3dgs.utils.io import unwritable_reason, write_json
 
 class TrainingDivergedError(RuntimeError):
     """The loss or a parameter became NaN or infinite; the last checkpoint is untouched."""
-
-
-class TrainingInterrupted(Exception):
-    """SIGINT (Ctrl-C) or SIGTERM stopped the run after a complete step, whose checkpoint was written; a command
-    exits with 128 + `signum` (130, 143)."""
-
-    def __init__(self, signum: int, step: int, checkpoint: Path, message: str):
-        super().__init__(message)
-        self.signum, self.step, self.checkpoint = signum, step, checkpoint
-
-
-class StopRequests:
-    """While training: the first SIGINT or SIGTERM asks the loop to stop after the current step (the state after a
-    complete step is consistent: it is checkpointed); a second SIGINT stops at once (KeyboardInterrupt: the last
-    periodic checkpoint stands). Handlers are installed in the main thread only, and restored on exit."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self._previous: dict[int, Any] = {}
-
-    def __enter__(self) -> StopRequests:
-        if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
-        self._previous.clear()
-
-    def _handle(self, signum: int, frame: object) -> None:
-        if self.signum is not None and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        if self.signum is None:
-            self.signum = signum
-            try:  # a handler may run inside a write to stderr: never let the notice break the run
-                sys.stderr.write(f"\n{signal.Signals(signum).name}: stopping after this step and writing its "
-                                 "checkpoint (Ctrl-C again stops at once, without it)\n")
-                sys.stderr.flush()
-            except (RuntimeError, OSError, ValueError):
-                pass
 
 
 def resolve_device(name: str) -> torch.device:
