@@ -22,7 +22,7 @@ from typing import Any
 import tyro
 import yaml
 
-from uw3dgs.options import OptionError, check_config, check_now, deferred_checks
+from uw3dgs.options import CheckedConfig, OptionError, check_config, deferred_checks
 from uw3dgs.utils.io import write_text
 
 Target = tyro.conf.Suppress[Callable[..., Any]]
@@ -35,16 +35,10 @@ def target(factory: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class InstantiateConfig:
+class InstantiateConfig(CheckedConfig):
     """A config that knows which class it configures: `config.setup(**kwargs)` builds it."""
 
     _target: Target = target(lambda: object)
-
-    def __post_init__(self) -> None:
-        check_now(self)
-
-    def check_options(self) -> None:
-        """Raise `OptionError(field, reason)` for an option out of range (subclasses extend it: call super)."""
 
     def setup(self, **kwargs: Any) -> Any:
         return self._target(self, **kwargs)

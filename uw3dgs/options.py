@@ -1,6 +1,6 @@
 """Option checks: every config checks its own numbers where they are declared.
 
-A config's `check_options()` (called from `__post_init__` through `check_now`) raises `OptionError` naming the
+A config's `check_options()` (called from `CheckedConfig.__post_init__`) raises `OptionError` naming the
 field; `check_config` runs the checks of a whole config and names the option in full (`--optimizers.means.lr`),
 as the command line and config files do. While a whole config is parsed (`deferred_checks`), the per-config
 checks wait, so the first error names the option as the user typed it.
@@ -85,11 +85,17 @@ def deferred_checks() -> Iterator[None]:
         _DEFERRED.reset(token)
 
 
-def check_now(config: Any) -> None:
-    """Call from `__post_init__`: run `config.check_options()` unless a whole config is being built
-    (`deferred_checks`), whose builder checks it afterwards with full names."""
-    if not _DEFERRED.get():
-        config.check_options()
+@dataclasses.dataclass(frozen=True)
+class CheckedConfig:
+    """Base of every config dataclass: its options are checked as soon as it is built (`check_options`, which
+    subclasses extend, calling super), or once the whole config is built while parsing (`deferred_checks`)."""
+
+    def __post_init__(self) -> None:
+        if not _DEFERRED.get():  # while a whole config is parsed, its builder checks it afterwards, with full names
+            self.check_options()
+
+    def check_options(self) -> None:
+        """Raise `OptionError(field, reason)` for an option out of range (`check_number` covers most)."""
 
 
 def check_config(config: Any, prefix: tuple[str, ...] = ()) -> None:

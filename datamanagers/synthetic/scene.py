@@ -21,7 +21,7 @@ import pycolmap
 from PIL import Image
 from rich.progress import Progress
 
-from uw3dgs.options import OptionError, check_now, check_number
+from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 GENERATOR_VERSION = 2
 """Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""
@@ -30,7 +30,7 @@ RGB = tuple[float, float, float]
 
 
 @dataclass(frozen=True)
-class SyntheticSceneConfig:
+class SyntheticSceneConfig(CheckedConfig):
     """Everything that defines a synthetic scene; the same config always gives the same bytes."""
 
     seed: int = 0
@@ -109,9 +109,6 @@ class SyntheticSceneConfig:
     """Standard deviation of the points' position noise, as a fraction of the median range of all pixels."""
     outlier_fraction: float = 0.05
     """Share of points that are outliers scattered in the camera frusta between the near and far range."""
-
-    def __post_init__(self) -> None:
-        check_now(self)
 
     def check_options(self) -> None:
         """Reject settings the generator cannot honour, naming the knob (they usually come from flags)."""

@@ -14,7 +14,7 @@ import tyro
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManagerConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.models.base import ModelConfig
-from uw3dgs.options import OptionError, check_now, check_number
+from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 
 def datamanager_choices() -> type:
@@ -30,7 +30,7 @@ def datamanager_choices() -> type:
 
 
 @dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(CheckedConfig):
     method_name: tyro.conf.Suppress[str]
     """Registry name of the method; set by the subcommand."""
     model: ModelConfig
@@ -72,9 +72,6 @@ class TrainConfig:
     datamanager: Annotated[DataManagerConfig, tyro.conf.arg(constructor_factory=datamanager_choices)] = field(
         default_factory=AutoDataManagerConfig)
     """Which dataset reader; a subcommand after the options (default: auto)."""
-
-    def __post_init__(self) -> None:
-        check_now(self)
 
     def check_options(self) -> None:
         for name in ("max_num_iterations", "steps_per_log", "steps_per_save", "steps_per_eval_image",

@@ -14,11 +14,11 @@ from typing import Any
 import torch
 from torch import nn
 
-from uw3dgs.options import OptionError, check_now, check_number
+from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 
 @dataclass(frozen=True)
-class ParamGroupConfig:
+class ParamGroupConfig(CheckedConfig):
     lr: float
     eps: float = 1e-15
     """Adam epsilon; 3DGS uses 1e-15 so that tiny gradients still move parameters."""
@@ -28,9 +28,6 @@ class ParamGroupConfig:
     """If set, the rate decays log-linearly from lr to lr_final (3DGS's position schedule); else constant."""
     decay_steps: int | None = None
     """Steps of the decay; None follows --max-num-iterations."""
-
-    def __post_init__(self) -> None:
-        check_now(self)
 
     def check_options(self) -> None:
         check_number(self, "lr", ge=0)  # 0 freezes the group (e.g. the oracle medium of --model.medium.init truth)

@@ -6,11 +6,11 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from uw3dgs.options import OptionError, check_now, check_number
+from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 
 @dataclass(frozen=True)
-class RasterSettings:
+class RasterSettings(CheckedConfig):
     """Numerical choices of 3DGS rasterization; every backend honours all of them."""
 
     tile_size: int = 16
@@ -29,9 +29,6 @@ class RasterSettings:
     """Early ray termination: a Gaussian that would bring T below this is not blended, nor any after it."""
     backend: str = "auto"
     """Rasterizer backend: 'auto' picks the fastest available for the tensors' device."""
-
-    def __post_init__(self) -> None:
-        check_now(self)
 
     def check_options(self) -> None:
         check_number(self, "tile_size", ge=1, integer=True)

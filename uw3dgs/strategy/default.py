@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.options import check_now, check_number
+from uw3dgs.options import CheckedConfig, check_number
 from uw3dgs.render.projection import quat_to_rotmat
 from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
 
@@ -23,7 +23,7 @@ radius as a share of the image's larger side), on the Gaussians' device."""
 
 
 @dataclass(frozen=True)
-class DensificationConfig:
+class DensificationConfig(CheckedConfig):
     refine_start: int = 500
     """First step that densifies or prunes."""
     refine_every: int = 100
@@ -48,9 +48,6 @@ class DensificationConfig:
     """After the first reset, prune Gaussians whose screen radius exceeded this fraction of the image."""
     prune_world_size: float = 0.1
     """After the first reset, prune Gaussians larger than this fraction of the scene extent."""
-
-    def __post_init__(self) -> None:
-        check_now(self)
 
     def check_options(self) -> None:
         check_number(self, "refine_start", ge=0, integer=True)
