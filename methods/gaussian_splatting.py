@@ -17,12 +17,13 @@ from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.metrics.depth import range_abs_rel
+from uw3dgs.metrics.floaters import floater_ratios
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import RasterSettings, rasterize
-from uw3dgs.strategy import DefaultStrategy, DensificationConfig
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig, ExtraPruning
 from uw3dgs.utils.visualize import depth_to_image
 
 COVERAGE_EPS = 1e-4
@@ -77,22 +78,39 @@ class GaussianSplattingModel(Model):
             return torch.rand(3, device=device)
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
-    def render(self, camera: Camera) -> dict[str, Any]:
+    def render(self, camera: Camera, keep: Tensor | None = None,
+               depth_weights: Tensor | None = None) -> dict[str, Any]:
         """Rasterize the Gaussians' view-dependent colours seen from `camera`, no background:
         'radiance' [H, W, 3] = sum_i w_i c_i; 'alpha' [H, W] coverage; 'depth' [H, W] expected camera-space z of
         the covered part (0 where uncovered); 'range' [H, W] the same along the ray from the camera centre
         (world units; the scene's far bound where uncovered: open water); 'means2d' [N, 2] pixel centres
-        (their gradient is kept for density control while training); 'radii' [N] pixels, 0 = not visible."""
+        (their gradient is kept for density control while training); 'radii' [N] pixels, 0 = not visible;
+        'weight_sum' [N] each Gaussian's blending weights summed over the image and 'pixel_count' [N] the pixels it
+        was blended into (no gradient).
+
+        `keep` [N] in [0, 1] scales the opacities (PAUP's relaxed keep mask). `depth_weights` [N] >= 0 weight each
+        Gaussian's share of the depth (the paper's (1 - U_i)): depth = sum_i w_i d_i z_i / sum_i w_i d_i, the
+        unweighted depth where a covered pixel's weights sum to nothing."""
         means, scales, quats, opacities = self.gaussians.activated()
+        if keep is not None:
+            opacities = opacities * keep
         colors = self.gaussians.colors(camera.center)
+        if depth_weights is not None:  # the weighted depth composites as two more feature channels
+            z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
+            colors = torch.cat([colors, depth_weights[:, None], (depth_weights * z)[:, None]], dim=-1)
         out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # density control reads the screen-space gradient
         covered = out.alpha > COVERAGE_EPS
         depth = torch.where(covered, out.depth / out.alpha.clamp_min(COVERAGE_EPS), torch.zeros_like(out.depth))
+        radiance = out.render
+        if depth_weights is not None:
+            radiance, weight, weighted = out.render[..., :3], out.render[..., 3], out.render[..., 4]
+            depth = torch.where(weight > COVERAGE_EPS, weighted / weight.clamp_min(COVERAGE_EPS), depth)
         ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
-        return {"radiance": out.render, "alpha": out.alpha, "depth": depth, "range": ranges,
-                "means2d": out.means2d, "radii": out.radii}
+        return {"radiance": radiance, "alpha": out.alpha, "depth": depth, "range": ranges,
+                "means2d": out.means2d, "radii": out.radii, "weight_sum": out.weight_sum,
+                "pixel_count": out.pixel_count}
 
     def over_background(self, radiance: Tensor, alpha: Tensor) -> Tensor:
         """`radiance` [H, W, 3] composited over the background colour where `alpha` [H, W] leaves it visible."""
@@ -113,6 +131,19 @@ class GaussianSplattingModel(Model):
                                                      batch["range"])
         return metrics
 
+    def get_eval_summary(self, scene: SceneData) -> dict[str, float | None]:
+        """`floater_ratio` over the training views (uw3dgs/metrics/floaters.py) against the rendered surface and,
+        where the scene knows its true ranges, `floater_ratio_gt` against the true one."""
+        was_training = self.training
+        self.eval()
+        with torch.no_grad():
+            means, scales, _, _ = self.gaussians.activated()
+            cameras = [scene.cameras[i].to(means.device) for i in self.train_indices]
+            truth = None if scene.gt is None else [scene.gt.ranges[i] for i in self.train_indices]
+            out = floater_ratios(means, scales.max(dim=-1).values, cameras, self.render, truth)
+        self.train(was_training)
+        return {**super().get_eval_summary(scene), **out}
+
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         lam = self.config.ssim_lambda
         pred, gt = outputs["rgb"], batch["image"]
@@ -132,10 +163,13 @@ class DensityControl(TrainingCallback):
 
     name = "densification"
 
-    def __init__(self, strategy: DefaultStrategy, gaussians: GaussianField, optimizers: Optimizers):
+    def __init__(self, strategy: DefaultStrategy, gaussians: GaussianField, optimizers: Optimizers,
+                 extra_pruning: ExtraPruning | None = None):
         self.strategy = strategy
         self.gaussians = gaussians
         self.optimizers = optimizers
+        self.extra_pruning = extra_pruning
+        """Another criterion pruning at the same events (PAUP); its per-Gaussian state follows every change."""
         self.state = strategy.initialize_state(gaussians)
 
     def after_backward(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
@@ -144,7 +178,11 @@ class DensityControl(TrainingCallback):
                                          (camera.width, camera.height))
 
     def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
-        self.strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step)
+        extra = self.extra_pruning
+        remove = extra.select(step) if extra is not None and self.strategy.is_refine_step(step) else None
+        origin = self.strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step, remove)
+        if extra is not None and origin is not None:
+            extra.reindex(origin)
 
     def state_dict(self) -> dict[str, Any]:
         return dict(self.state)

@@ -1,9 +1,8 @@
-"""`uw3dgs`: 3DGS plus the learnable underwater image formation module (UW-3DGS, the paper), and its
-ablations as configs of the same model.
+"""`uw3dgs`: 3DGS plus the learnable underwater image formation module and Physics-Aware Uncertainty Pruning
+(UW-3DGS, the paper), and its ablations as configs of the same model.
 
-Physics-Aware Uncertainty Pruning (PAUP) is not part of this model yet: until it lands, every
-Gaussian's uncertainty U_i is 0 and its physics-aware uncertainty score PUS_i is 1, which is exactly
-what L_beta and L_z reduce to without the PAUP branch.
+Without the PAUP branch (`uw3dgs-no-paup`) every Gaussian's uncertainty U_i is 0 and its physics-aware uncertainty
+score PUS_i is 1: L_beta and L_z are then unweighted and the depth is the plain composited one.
 """
 
 from __future__ import annotations
@@ -19,18 +18,29 @@ from uw3dgs.cameras import Camera
 from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
+from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.config import TrainConfig
-from uw3dgs.engine.optimizers import ParamGroupConfig
+from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
 from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
-from uw3dgs.methods.gaussian_splatting import GaussianSplattingModel, GaussianSplattingModelConfig, gaussian_optimizers
+from uw3dgs.methods.gaussian_splatting import (
+    COVERAGE_EPS,
+    DensityControl,
+    GaussianSplattingModel,
+    GaussianSplattingModelConfig,
+    ShDegreeSchedule,
+    gaussian_optimizers,
+)
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.options import check_number
+from uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
+from uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.registry import MethodSpec
+from uw3dgs.render import rasterize
 from uw3dgs.render.sh import rgb_to_sh
-from uw3dgs.strategy import DensificationConfig
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 from uw3dgs.utils.console import info
-from uw3dgs.utils.visualize import depth_to_image
+from uw3dgs.utils.visualize import apply_colormap, depth_to_image
 
 
 @dataclass(frozen=True)
@@ -48,6 +58,12 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     """Gaussian centres drawn per step to estimate L_beta's mean over all centres."""
     depth_loss_weight: float = 0.05
     """Weight of L_z = mean_i (1 - U_i) |z(p_i) - zhat_i| over visible Gaussians, in units of the median depth."""
+    use_paup: bool = True
+    """False removes the PAUP branch (the no-paup ablation): no masked render, no L_PAPSL, no pruning by
+    uncertainty, U = 0 and PUS = 1 everywhere."""
+    paup: PAUPConfig = field(default_factory=PAUPConfig)
+    uncertainty_weighted_depth: bool = True
+    """Composite depth with PAUP's (1 - U_i) weights (the paper's Eq. base_depth); False: the plain depth."""
 
     field_slots: ClassVar[dict[str, tuple[str, str]]] = {**GaussianSplattingModelConfig.field_slots,
                                                          "medium_field": ("medium", "medium")}
@@ -65,6 +81,8 @@ class UW3DGSModel(GaussianSplattingModel):
     def __init__(self, config: UW3DGSModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__(config, scene, train_indices)
         self.dataset_scale = float(scene.dataset_scale)
+        self.train_cameras = [scene.cameras[i] for i in train_indices]
+        self.paup = PAUP(config.paup, self.num_gaussians) if config.use_paup else None
         self.medium: MediumField | None = None
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
@@ -110,13 +128,37 @@ class UW3DGSModel(GaussianSplattingModel):
         groups = super().param_groups()
         if self.medium is not None:
             groups.update(self.medium.param_groups())
+        if self.paup is not None:
+            groups["paup"] = list(self.paup.scorer.parameters())
         return groups
+
+    def state_keys_resized_in_training(self) -> set[str]:
+        keys = super().state_keys_resized_in_training()
+        return keys if self.paup is None else keys | {f"paup.{name}" for name in PER_GAUSSIAN_BUFFERS}
+
+    def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
+        if self.paup is None:
+            return super().get_training_callbacks(optimizers, max_num_iterations)
+        strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
+        return [ShDegreeSchedule(self.gaussians), PAUPSchedule(self.paup),
+                DensityControl(strategy, self.gaussians, optimizers, extra_pruning=self.paup)]
+
+    def depth_weights(self) -> Tensor | None:
+        """PAUP's (1 - U_i) [N] for the composited depth, None for the plain depth (no PAUP, no statistics yet, or
+        --model.uncertainty-weighted-depth False)."""
+        if self.paup is None or not self.config.uncertainty_weighted_depth or not self.paup.has_statistics:
+            return None
+        return self.paup.depth_weights()
 
     def get_outputs(self, camera: Camera) -> dict[str, Any]:
         """`render`'s outputs with the water: 'uri' [H, W, 3] the water-free radiance (the rendered one), 'rgb'
         [H, W, 3] the underwater image formed from it; with a medium also 'attenuation', 'backscatter', 'beta_d',
         'beta_b' [H, W, 3] (the betas ray-averaged per pixel, per dataset unit)."""
-        outputs = self.render(camera)
+        weights = self.depth_weights()
+        if self.training and self.paup is not None and self.paup.active:
+            outputs = self.render_enhanced(camera, weights)
+        else:
+            outputs = self.render(camera, depth_weights=weights)
         uri = outputs["uri"] = outputs.pop("radiance")
         if self.medium is None:
             outputs["rgb"] = self.over_background(uri, outputs["alpha"])
@@ -128,6 +170,45 @@ class UW3DGSModel(GaussianSplattingModel):
                        beta_d=beta_d, beta_b=beta_b)
         return outputs
 
+    def render_enhanced(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
+        """Training render with PAUP: `render`'s outputs for I_UR^Enh (opacities times a relaxed keep mask s_i ~
+        Bernoulli(1 - m_i); 'radiance' is I_UR^Enh), plus 'uri_full' [H, W, 3] the unmasked I_UR (no gradient: the
+        target L_PAPSL pulls I_UR^Enh to), 'pus' and 'floater_probability' [N]. Refreshes the statistics first
+        when they are due."""
+        if self.paup.refresh_due:
+            self.refresh_paup_statistics(camera)
+            depth_weights = self.depth_weights()
+        pus, m = self.paup.scores()
+        keep = relaxed_keep_mask(1.0 - m, self.config.paup.mask_temperature)
+        outputs = self.render(camera, keep=keep, depth_weights=depth_weights)
+        with torch.no_grad():
+            outputs["uri_full"] = self.render(camera)["radiance"]
+        outputs.update(pus=pus, floater_probability=m)
+        return outputs
+
+    def nearest_train_cameras(self, camera: Camera, count: int) -> list[Camera]:
+        """The `count` training cameras whose centres are nearest `camera`'s (itself included when it is one)."""
+        centers = torch.stack([c.center for c in self.train_cameras])
+        order = (centers - camera.center.to(centers)).norm(dim=-1).argsort()[:count]
+        return [self.train_cameras[int(i)].to(camera.viewmat.device) for i in order]
+
+    @torch.no_grad()
+    def refresh_paup_statistics(self, camera: Camera) -> None:
+        """U, P of every Gaussian from no-gradient renders of the K training views nearest `camera`."""
+        c = self.config.paup
+        means = self.gaussians.means
+        opacities = torch.sigmoid(self.gaussians.opacities)
+        beta_d = self.medium.betas(means)[0] if self.medium is not None else None
+        weights = self.depth_weights()
+        views = []
+        for view in self.nearest_train_cameras(camera, c.num_views):
+            out = self.render(view, depth_weights=weights)
+            views.append(observe_view(out["weight_sum"], out["pixel_count"], self.gaussians.colors(view.center),
+                                      out["means2d"], out["radii"], (means - view.center).norm(dim=-1),
+                                      out["range"], out["alpha"], opacities, beta_d, self.dataset_scale,
+                                      COVERAGE_EPS, c.attenuation_weight))
+        self.paup.update(*combine_views(views, c.opacity_variance_weight, c.color_variance_weight))
+
     def ray_betas(self, camera: Camera, ranges: Tensor) -> tuple[Tensor, Tensor]:
         """beta_D, beta_B [H, W, 3] averaged along each pixel's ray from the camera to `ranges` [H, W]."""
         dirs = camera.ray_directions().reshape(-1, 3)
@@ -137,8 +218,9 @@ class UW3DGSModel(GaussianSplattingModel):
 
     def depth_consistency(self, outputs: dict[str, Any], camera: Camera) -> Tensor:
         """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|,
-        in units of the view's median rendered range (a scalar)."""
+        in units of the view's median rendered range, weighted by PAUP's (1 - U_i) where it has them (a scalar)."""
         visible = outputs["radii"] > 0
+        weights = self.depth_weights()
         pix = outputs["means2d"][visible].detach().floor().long()
         inside = (pix[:, 0] >= 0) & (pix[:, 0] < camera.width) & (pix[:, 1] >= 0) & (pix[:, 1] < camera.height)
         if not bool(inside.any()):
@@ -147,19 +229,32 @@ class UW3DGSModel(GaussianSplattingModel):
         rendered = outputs["range"][pix[:, 1], pix[:, 0]]
         own = (self.gaussians.means[visible][inside] - camera.center).norm(dim=-1)
         scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
-        return ((rendered - own).abs() / scale).mean()
+        error = (rendered - own).abs() / scale
+        return error.mean() if weights is None else (weights[visible][inside] * error).mean()
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)
         c = self.config
         if self.medium is not None and c.beta_loss_weight > 0:
-            means = self.gaussians.means.detach()
+            means, picked = self.gaussians.means.detach(), None
             if len(means) > c.beta_loss_samples:  # an unbiased estimate of the mean over all centres
-                means = means[torch.randint(len(means), (c.beta_loss_samples,), device=means.device)]
-            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means)
+                picked = torch.randint(len(means), (c.beta_loss_samples,), device=means.device)
+                means = means[picked]
+            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, self.beta_loss_weights(picked))
         if c.depth_loss_weight > 0:
             losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
+        if "uri_full" in outputs:
+            losses["paup_loss"] = self.paup.loss(outputs["uri_full"], outputs["uri"], outputs["floater_probability"])
         return losses
+
+    def beta_loss_weights(self, picked: Tensor | None) -> Tensor | None:
+        """PUS_i of the Gaussians whose centres L_beta reads (`picked` indices, None = all), detached (a weight, not
+        a target: L_beta must not train the scorer); None (PUS = 1) without PAUP statistics."""
+        if self.paup is None or not self.paup.has_statistics:
+            return None
+        with torch.no_grad():
+            pus = self.paup.scores()[0]
+        return pus if picked is None else pus[picked]
 
     def medium_summary(self) -> dict[str, Tensor]:
         """Learned B_inf and the mean of beta_D, beta_B over the Gaussian centres (per channel)."""
@@ -172,6 +267,13 @@ class UW3DGSModel(GaussianSplattingModel):
     def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
         """Adds B_inf and this view's ray-averaged beta_D, beta_B (cheap: already computed for rendering)."""
         metrics = super().get_metrics_dict(outputs, batch)
+        if self.paup is not None:
+            scorer = self.paup.scorer
+            metrics.update({"paup/w_u": float(scorer.w_u.detach()), "paup/w_p": float(scorer.w_p.detach()),
+                            "paup/pruned_last_event": float(self.paup.last_pruned),
+                            "paup/pruned_total": float(self.paup.pruned_total)})
+            if "floater_probability" in outputs:
+                metrics["paup/mean_floater_probability"] = float(outputs["floater_probability"].detach().mean())
         if self.medium is None:
             return metrics
         values = {"b_inf": self.medium.b_inf.detach(), "beta_d": outputs["beta_d"].detach().mean((0, 1)),
@@ -191,10 +293,13 @@ class UW3DGSModel(GaussianSplattingModel):
                 metrics["uri_psnr_covisible"] = float(psnr(uri, batch["clean_image"], batch["covisible"]))
         return metrics
 
-    def get_eval_summary(self, scene: SceneData) -> dict[str, float]:
-        """Error of the learned medium against the ground truth (synthetic scenes), relative, per channel."""
+    def get_eval_summary(self, scene: SceneData) -> dict[str, float | None]:
+        """3DGS's (the floater ratios), PAUP's `pruned_share` (Gaussians it removed over the run / all ever created),
+        the learned medium and its error against the ground truth (synthetic scenes), relative, per channel."""
         learned = self.medium_summary()
-        out: dict[str, float] = {}
+        out: dict[str, float | None] = dict(super().get_eval_summary(scene))
+        if self.paup is not None:
+            out["pruned_share"] = self.paup.pruned_share
         for name, value in learned.items():
             for channel, v in zip("rgb", value.tolist(), strict=True):
                 out[f"{name}_{channel}"] = v
@@ -215,29 +320,69 @@ class UW3DGSModel(GaussianSplattingModel):
             images["backscatter"] = outputs["backscatter"].clamp(0, 1)
         if "clean_image" in batch:
             images["gt_clean"] = batch["clean_image"]
+        if self.paup is not None and self.paup.has_statistics:
+            images.update(self.paup_images(batch["camera"]))
         return images
 
+    @torch.no_grad()
+    def paup_images(self, camera: Camera) -> dict[str, Tensor]:
+        """'uri_enhanced': I_UR^Enh with every opacity times its expected keep probability 1 - m_i (what PAUP
+        would drop shows as missing); 'uncertainty': U_i splatted (blending-weighted mean per pixel), colour-mapped
+        over [0, max U]."""
+        _, m = self.paup.scores()
+        enhanced = self.render(camera, keep=1.0 - m)["radiance"].clamp(0, 1)
+        means, scales, quats, opacities = self.gaussians.activated()
+        u = self.paup.filled()[0]
+        out = rasterize(means, quats, scales, opacities, u[:, None], camera, self.config.raster)
+        mean_u = out.render[..., 0] / out.alpha.clamp_min(COVERAGE_EPS)
+        top = float(u.max().clamp_min(1e-12))
+        covered = out.alpha > COVERAGE_EPS
+        return {"uri_enhanced": enhanced, "uncertainty": apply_colormap(mean_u, vmin=0.0, vmax=top, mask=covered)}
 
-def uw3dgs_optimizers() -> dict[str, ParamGroupConfig]:
-    """The paper's rates: 0.05 opacity, 0.005 scaling, 0.001 rotation, 0.001 medium; 3DGS elsewhere."""
-    return {**gaussian_optimizers(opacity_lr=0.05, scaling_lr=0.005, rotation_lr=0.001),
-            "medium_beta": ParamGroupConfig(0.001), "medium_b_inf": ParamGroupConfig(0.001)}
+    def get_histograms(self) -> dict[str, Tensor]:
+        if self.paup is None or not self.paup.has_statistics:
+            return {}
+        with torch.no_grad():
+            pus, m = self.paup.scores()
+        return {"paup/floater_probability": m, "paup/pus": pus, "paup/uncertainty": self.paup.uncertainty,
+                "paup/implausibility": self.paup.implausibility}
+
+
+class PAUPSchedule(TrainingCallback):
+    """Tells the PAUP branch the step (when it starts, when its statistics are due)."""
+
+    name = "paup"
+
+    def __init__(self, paup: PAUP):
+        self.paup = paup
+
+    def before_step(self, step: int) -> None:
+        self.paup.set_step(step)
+
+
+def uw3dgs_optimizers(paup: bool) -> dict[str, ParamGroupConfig]:
+    """The paper's rates: 0.05 opacity, 0.005 scaling, 0.001 rotation, 0.001 medium; 3DGS elsewhere; PAUP's scorer
+    (w_u, w_p, phi; the paper gives no rate) at Adam's usual 0.001."""
+    groups = {**gaussian_optimizers(opacity_lr=0.05, scaling_lr=0.005, rotation_lr=0.001),
+              "medium_beta": ParamGroupConfig(0.001), "medium_b_inf": ParamGroupConfig(0.001)}
+    return {**groups, "paup": ParamGroupConfig(0.001)} if paup else groups
 
 
 def _method(name: str, description: str, **model_overrides: Any) -> MethodSpec:
     # DESIGN's schedule: densify until 15,000 of the 40,000 steps (3DGS's absolute value, not its half)
     base = UW3DGSModelConfig(densification=DensificationConfig(refine_stop=15000))
     model = dataclasses.replace(base, **model_overrides)
-    config = TrainConfig(method_name=name, model=model, optimizers=uw3dgs_optimizers(), max_num_iterations=40000)
+    config = TrainConfig(method_name=name, model=model, optimizers=uw3dgs_optimizers(model.use_paup),
+                         max_num_iterations=40000)
     return MethodSpec(name, description, config)
 
 
 method = _method("uw3dgs", "UW-3DGS: 3DGS + learnable underwater image formation (VM-grid beta_D, beta_B, B_inf), "
-                 "L_beta and L_z (PAUP pending).")
+                 "Physics-Aware Uncertainty Pruning, L_beta, L_z.")
+no_paup = _method("uw3dgs-no-paup", "Ablation: no PAUP branch, no L_PAPSL (U = 0, PUS = 1).", use_paup=False)
 no_medium = _method("uw3dgs-no-medium", "Ablation: plain 3DGS rendering, no L_beta, no L_z.",
                     use_medium=False, beta_loss_weight=0.0, depth_loss_weight=0.0)
 no_lbeta = _method("uw3dgs-no-lbeta", "Ablation: beta fixed at beta_prior (B_inf still learned), no L_beta.",
                    medium=MediumGridConfig(learn_beta=False), beta_loss_weight=0.0)
-# with U_i = 0 until PAUP lands, depth is composited without (1 - U) weights in every variant
-no_lz = _method("uw3dgs-no-lz", "Ablation: no L_z (and, once PAUP lands, depth without the (1 - U) weight).",
-                depth_loss_weight=0.0)
+no_lz = _method("uw3dgs-no-lz", "Ablation: no L_z, depth without the (1 - U) weight.", depth_loss_weight=0.0,
+                uncertainty_weighted_depth=False)

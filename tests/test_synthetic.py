@@ -302,3 +302,131 @@ def test_cli_writes_a_scene(tmp_path, capsys):
     assert scene.images.shape == (4, 24, 32, 3)
     assert scene.gt.medium["beta_D"] == pytest.approx([0.8, 0.4, 0.24])
     assert "views" in capsys.readouterr().out
+
+
+# Marine snow: transient bright particles, each drawn into one view only. Larger than the default particles so
+# that they cover a pixel or more at this small width.
+SNOWY = dataclasses.replace(SMALL, marine_snow=6, marine_snow_radius=(0.03, 0.05))
+
+
+@pytest.fixture(scope="module")
+def snowy_dir(tmp_path_factory) -> Path:
+    return generate_scene(SNOWY, tmp_path_factory.mktemp("snowy") / "scene", progress=False)
+
+
+def _particles(root: Path) -> list[dict]:
+    return json.loads((root / "gt" / "marine_snow.json").read_text())["particles"]
+
+
+def _footprint(particles: list[dict], view: int, margin: float = 1.5) -> np.ndarray:
+    """[H, W] pixels within `margin` px of the discs of `view`'s particles."""
+    v, u = np.meshgrid(np.arange(SMALL.height) + 0.5, np.arange(SMALL.width) + 0.5, indexing="ij")
+    near = np.zeros((SMALL.height, SMALL.width), dtype=bool)
+    for p in particles:
+        if p["view"] == view:
+            near |= np.hypot(u - p["uv"][0], v - p["uv"][1]) <= p["radius_px"] + margin
+    return near
+
+
+def test_marine_snow_is_off_by_default_and_keeps_the_keys():
+    """Scenes without snow keep the cache keys (and bytes) they had before the option existed; the snow knobs
+    only count once there is snow."""
+    assert SyntheticSceneConfig().marine_snow == 0
+    assert cache_key(SyntheticSceneConfig()) == "ecf3ad650b29"
+    assert cache_key(SMALL) == "cde691d1356c"
+    assert cache_key(dataclasses.replace(SMALL, marine_snow_radius=(0.1, 0.2), marine_snow_brightness=0.5)) == \
+        cache_key(SMALL)
+    assert cache_key(SNOWY) != cache_key(SMALL)
+    assert cache_key(SNOWY) != cache_key(dataclasses.replace(SNOWY, marine_snow_brightness=0.5))
+
+
+def test_marine_snow_leaves_the_truth_alone(scene_dir, snowy_dir):
+    """Snow is part of the water, not the scene: clean images, ranges, poses, points and medium are those of
+    the snow-free scene; only the underwater images differ, and the particles are listed."""
+    plain, snowy = _files(scene_dir), _files(snowy_dir)
+    assert set(snowy) == set(plain) | {"gt/marine_snow.json"}
+    for name in plain:
+        if not name.startswith("Images_wb/") and name != "gt/medium.json":
+            assert snowy[name] == plain[name], name
+    medium, snowy_medium = (json.loads((d / "gt" / "medium.json").read_text()) for d in (scene_dir, snowy_dir))
+    assert "marine_snow" not in medium["config"] and snowy_medium["config"]["marine_snow"] == SNOWY.marine_snow
+    for key in ("beta_D", "beta_B", "B_inf"):
+        assert snowy_medium[key] == medium[key]
+    assert sum(snowy[n] != plain[n] for n in plain if n.startswith("Images_wb/")) == SNOWY.num_views
+    assert len(_particles(snowy_dir)) == SNOWY.marine_snow * SNOWY.num_views
+
+
+def test_marine_snow_adds_small_bright_specks(scene_dir, snowy_dir):
+    """Each view differs from the snow-free one only in small discs around its own particles, where it is
+    brighter; each particle in front of its pixel's seabed shows."""
+    plain, snowy = read_seathru_layout(scene_dir), read_seathru_layout(snowy_dir)
+    ranges = plain.gt.ranges.numpy()
+    particles = _particles(snowy_dir)
+    for k in range(SNOWY.num_views):
+        before, after = (np.round(s.images[k].double().numpy() * 255) for s in (plain, snowy))
+        changed = (after != before).any(axis=-1)
+        assert (after >= before).all()  # a particle is brighter than what it hides, in every channel
+        assert 0 < changed.mean() < 0.1
+        assert not (changed & ~_footprint(particles, k)).any()  # only near this view's own particles
+        shown = 0
+        for p in (p for p in particles if p["view"] == k):
+            assert 0 < p["range"] < ranges[k][int(p["uv"][1]), int(p["uv"][0])] + 0.05  # never behind the seabed
+            assert SNOWY.marine_snow_range[0] / 2 <= p["range"] <= SNOWY.marine_snow_range[1]
+            shown += changed[int(p["uv"][1]), int(p["uv"][0])]
+        assert shown >= SNOWY.marine_snow - 1  # a particle may hide behind a rock edge
+
+
+def test_marine_snow_is_transient(scene_dir, snowy_dir):
+    """A particle of view k is in no other view: where it projects into view j (in front of j's seabed, away
+    from j's own particles), view j is exactly the snow-free image."""
+    plain, snowy = read_seathru_layout(scene_dir), read_seathru_layout(snowy_dir)
+    ranges = plain.gt.ranges.numpy()
+    particles = _particles(snowy_dir)
+    checked = 0
+    for j, cam in enumerate(plain.cameras):
+        viewmat, K = cam.viewmat.double().numpy(), cam.K.double().numpy()
+        own = _footprint(particles, j)
+        for p in (p for p in particles if p["view"] != j):
+            xyz = np.array(p["xyz"])
+            x_cam = viewmat[:3, :3] @ xyz + viewmat[:3, 3]
+            if x_cam[2] <= 0:
+                continue
+            u, v = (K @ x_cam)[:2] / x_cam[2]
+            if not (0 <= u < SMALL.width and 0 <= v < SMALL.height) or own[int(v), int(u)]:
+                continue
+            if np.linalg.norm(xyz - _centre(viewmat)) >= ranges[j][int(v), int(u)]:
+                continue  # behind view j's seabed: it would be hidden anyway
+            assert (snowy.images[j, int(v), int(u)] == plain.images[j, int(v), int(u)]).all(), (p, j)
+            checked += 1
+    assert checked > 20
+
+
+def test_marine_snow_is_deterministic(tmp_path):
+    config = dataclasses.replace(SNOWY, num_views=3, num_points=100)
+    first = _files(generate_scene(config, tmp_path / "a", progress=False))
+    assert first == _files(generate_scene(config, tmp_path / "b", progress=False))
+    other = _files(generate_scene(dataclasses.replace(config, seed=1), tmp_path / "c", progress=False))
+    assert other["gt/marine_snow.json"] != first["gt/marine_snow.json"]
+
+
+@pytest.mark.parametrize(("change", "name"), [
+    ({"marine_snow": -1}, "marine_snow"),
+    ({"marine_snow": 1.5}, "marine_snow"),
+    ({"marine_snow_range": (3.0, 1.0)}, "marine_snow_range"),
+    ({"marine_snow_range": (0.0, 1.0)}, "marine_snow_range"),
+    ({"marine_snow_radius": (0.05, 0.01)}, "marine_snow_radius"),
+    ({"marine_snow_brightness": 1.5}, "marine_snow_brightness"),
+])
+def test_marine_snow_options_are_checked(change, name):
+    with pytest.raises(ValueError, match=name):
+        dataclasses.replace(SMALL, **change)
+
+
+def test_cli_writes_marine_snow(tmp_path):
+    out = tmp_path / "cli"
+    entrypoint(["--out", str(out), "--width", "32", "--height", "24", "--num-views", "2", "--num-points", "50",
+                "--terrain-size", "12", "--terrain-resolution", "0.05", "--marine-snow", "3",
+                "--marine-snow-radius", "0.02", "0.04"])
+    particles = _particles(out)
+    assert len(particles) == 6 and {p["view"] for p in particles} == {0, 1}
+    assert all(0.02 <= p["radius"] <= 0.04 for p in particles)

@@ -109,6 +109,21 @@ class SyntheticSceneConfig(CheckedConfig):
     """Standard deviation of the points' position noise, as a fraction of the median range of all pixels."""
     outlier_fraction: float = 0.05
     """Share of points that are outliers scattered in the camera frusta between the near and far range."""
+    marine_snow: int = 0
+    """Marine snow: transient particles per view (0 = none, the default). Each is a small bright disc drawn into
+    one underwater image only (Images_wb/), like a suspended particle lit by the strobe for one frame: a method
+    that trusts every view grows floaters for them. Clean images, ranges, the medium and the SfM points stay
+    those of the snow-free scene; the particles are listed in gt/marine_snow.json. Drawn from their own random
+    stream: the rest of the scene is the same with or without snow."""
+    marine_snow_range: tuple[float, float] = (0.75, 3.0)
+    """Range of the particles' distances from the camera, in metres (a strobe lights the water near the camera);
+    a particle is always in front of the seabed seen through its pixel (the far end stops there)."""
+    marine_snow_radius: tuple[float, float] = (0.015, 0.03)
+    """Range of the particles' radii, in metres. The apparent radius is r f / range pixels (f the focal length
+    in pixels, 111 at the default 128 px width: 1-9 px across with the default ranges, 2.6 px typically)."""
+    marine_snow_brightness: float = 1.0
+    """Clean radiance J of a particle (grey, all channels; 1 = white), seen through the water between it and
+    the camera like any object: J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) at its range z."""
 
     def check_options(self) -> None:
         """Reject settings the generator cannot honour, naming the knob (they usually come from flags)."""
@@ -135,11 +150,28 @@ class SyntheticSceneConfig(CheckedConfig):
         check_number(self, "dark_patch_radius", gt=0, each=True)
         if self.dark_patch_radius[0] > self.dark_patch_radius[1]:
             raise OptionError("dark_patch_radius", f"must be (smallest, largest), got {self.dark_patch_radius}")
+        check_number(self, "marine_snow", ge=0, integer=True)
+        for name in ("marine_snow_range", "marine_snow_radius"):
+            check_number(self, name, gt=0, each=True)
+            low, high = getattr(self, name)
+            if low > high:
+                raise OptionError(name, f"must be (smallest, largest), got {(low, high)}")
+        check_number(self, "marine_snow_brightness", ge=0, le=1)
+
+
+def _config_record(config: SyntheticSceneConfig) -> dict:
+    """The config as written to gt/medium.json and hashed by `cache_key`. Without marine snow its knobs change
+    nothing and are left out, so snow-free scenes keep the keys and bytes they had before the option existed."""
+    record = asdict(config)
+    if config.marine_snow == 0:
+        for name in ("marine_snow", "marine_snow_range", "marine_snow_radius", "marine_snow_brightness"):
+            del record[name]
+    return record
 
 
 def cache_key(config: SyntheticSceneConfig) -> str:
     """A short stable hash of the config and the generator version, to name a cache folder."""
-    payload = json.dumps({"version": GENERATOR_VERSION, "config": asdict(config)}, sort_keys=True)
+    payload = json.dumps({"version": GENERATOR_VERSION, "config": _config_record(config)}, sort_keys=True)
     return hashlib.sha256(payload.encode()).hexdigest()[:12]
 
 
@@ -570,6 +602,81 @@ def medium_parameters(cfg: SyntheticSceneConfig) -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------------------------------
+# Marine snow
+
+
+@dataclass
+class MarineSnow:
+    """The particles of one view (arrays of length P)."""
+
+    uv: np.ndarray
+    """[P, 2] image position of the centre, pixels (the top-left pixel's centre is (0.5, 0.5))."""
+    xyz: np.ndarray
+    """[P, 3] world position of the centre, metres."""
+    range: np.ndarray
+    """[P] distance from the camera centre, metres (always less than the seabed's along that ray)."""
+    radius: np.ndarray
+    """[P] radius in metres."""
+    radius_px: np.ndarray
+    """[P] apparent radius in pixels, radius f / range."""
+
+
+def marine_snow_particles(cfg: SyntheticSceneConfig, terrain: Terrain, K: np.ndarray, c2w: np.ndarray,
+                          rng: np.random.Generator) -> MarineSnow:
+    """`cfg.marine_snow` particles for the view `c2w`: each on the ray of a random image point, at a random range
+    between `marine_snow_range` and the seabed seen along that ray (closer where the seabed is nearer)."""
+    n = cfg.marine_snow
+    uv = rng.uniform(0.0, 1.0, (n, 2)) * np.array([cfg.width, cfg.height])
+    q = rng.uniform(0.0, 1.0, n)
+    radius = rng.uniform(*cfg.marine_snow_radius, n)
+    dirs = ray_directions(K, c2w, uv[:, 0], uv[:, 1])
+    surface = terrain.cast(c2w[:3, 3], dirs, cfg.march_steps)
+    far = np.minimum(cfg.marine_snow_range[1], surface)
+    near = np.minimum(cfg.marine_snow_range[0], 0.5 * far)
+    ranges = near + q * (far - near)  # q < 1: strictly in front of the seabed
+    xyz = c2w[:3, 3] + dirs * ranges[:, None]
+    return MarineSnow(uv, xyz, ranges, radius, radius * K[0, 0] / ranges)
+
+
+def add_marine_snow(cfg: SyntheticSceneConfig, view: RenderedView, snow: MarineSnow,
+                    medium: dict[str, np.ndarray]) -> np.ndarray:
+    """The view's underwater image (uint8) with its particles composited in, far to near: where a particle
+    covers a share a of a pixel (4 x 4 sub-samples, antialiased) and is in front of that pixel's seabed,
+    I = (1 - a) I + a I_p, with I_p = J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) the particle seen through z
+    of water. Pixels no particle covers keep the bytes of `view.underwater`."""
+    uw = underwater_image(view.clean / 255.0, view.ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
+    sub = (np.arange(4) + 0.5) / 4
+    for p in np.argsort(-snow.range):
+        (u, v), r, z = snow.uv[p], snow.radius_px[p], snow.range[p]
+        j0, j1 = max(int(u - r) - 1, 0), min(int(u + r) + 2, cfg.width)
+        i0, i1 = max(int(v - r) - 1, 0), min(int(v + r) + 2, cfg.height)
+        su = (np.arange(j0, j1)[:, None] + sub).ravel()  # sub-sample positions along x, then y
+        sv = (np.arange(i0, i1)[:, None] + sub).ravel()
+        dist = np.hypot(su[None, :] - u, sv[:, None] - v)
+        inside = np.clip((r - dist) * 4 + 0.5, 0.0, 1.0)  # soft edge over one sub-sample
+        cover = inside.reshape(i1 - i0, 4, j1 - j0, 4).mean(axis=(1, 3))
+        cover *= view.ranges[i0:i1, j0:j1] > z  # the seabed in front hides it
+        radiance = underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
+                                    medium["beta_D"], medium["beta_B"], medium["B_inf"])
+        a = cover[..., None]
+        uw[i0:i1, j0:j1] = np.where(a > 0, (1.0 - a) * uw[i0:i1, j0:j1] + a * radiance, uw[i0:i1, j0:j1])
+    return _to_uint8(uw)
+
+
+def _write_marine_snow(path: Path, snows: list[MarineSnow]) -> None:
+    """gt/marine_snow.json: every particle, with the view (image) it is drawn in."""
+    particles = [
+        {"image": name, "view": k, "uv": [float(x) for x in s.uv[p]], "xyz": [float(x) for x in s.xyz[p]],
+         "range": float(s.range[p]), "radius": float(s.radius[p]), "radius_px": float(s.radius_px[p])}
+        for k, (name, s) in enumerate(zip(_image_names(len(snows)), snows, strict=True))
+        for p in range(len(s.range))
+    ]
+    content = {"units": "metres; uv and radius_px in pixels (top-left pixel centre at (0.5, 0.5))",
+               "particles": particles}
+    path.write_text(json.dumps(content, indent=1) + "\n")
+
+
+# ----------------------------------------------------------------------------------------------------
 # SfM-like points
 
 
@@ -672,7 +779,7 @@ def _write_views(out_dir: Path, views: list[RenderedView]) -> None:
 def _write_medium(path: Path, cfg: SyntheticSceneConfig, medium: dict[str, np.ndarray]) -> None:
     content = {key: [float(x) for x in value] for key, value in medium.items()}
     content |= {"units": "per metre (world unit)", "seed": cfg.seed, "generator_version": GENERATOR_VERSION,
-                "config": asdict(cfg)}
+                "config": _config_record(cfg)}
     path.write_text(json.dumps(content, indent=2, sort_keys=True) + "\n")
 
 
@@ -687,8 +794,8 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
     if out_dir.exists() and any(out_dir.iterdir()):
         # Never mix with (or delete) what is there: stale views of another scene would corrupt this one.
         raise ValueError(f"{out_dir} is not empty; write the scene to a new or empty folder")
-    seeds = np.random.SeedSequence(config.seed).spawn(3)  # independent streams: poses, terrain, points
-    pose_rng, terrain_rng, point_rng = (np.random.default_rng(s) for s in seeds)
+    seeds = np.random.SeedSequence(config.seed).spawn(4)  # independent streams: poses, terrain, points, snow
+    pose_rng, terrain_rng, point_rng, snow_rng = (np.random.default_rng(s) for s in seeds)
     K = intrinsics(config)
     medium = medium_parameters(config)
     with Progress(disable=not progress, transient=True) as bar:
@@ -702,7 +809,13 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
             views.append(render_view(config, terrain, K, pose, medium))
             bar.advance(task)
         bar.update(task, description="writing")
-        xyz, rgb = sample_points(config, views, K, point_rng)
+        xyz, rgb = sample_points(config, views, K, point_rng)  # from the snow-free images: specks never triangulate
+        if config.marine_snow > 0:
+            snows = [marine_snow_particles(config, terrain, K, pose, snow_rng) for pose in c2w]
+            for view, snow in zip(views, snows, strict=True):
+                view.underwater = add_marine_snow(config, view, snow, medium)
+            (out_dir / "gt").mkdir(parents=True, exist_ok=True)
+            _write_marine_snow(out_dir / "gt" / "marine_snow.json", snows)
         _write_views(out_dir, views)
         write_colmap_model(out_dir / "sparse" / "0", K, config, c2w, xyz, rgb)
         z_bounds = np.stack([_z_bounds(v, k) for k, v in enumerate(views)])

@@ -55,6 +55,9 @@ def summary(config: SyntheticSceneConfig, out: Path, seconds: float) -> Table:
         ("points", f"{config.num_points} in sparse/0/points3D.bin"),
         ("where", f"{out} ({disk / 2**20:.1f} MiB)"),
     ]
+    if config.marine_snow > 0:
+        rows.insert(-1, ("marine snow", f"{config.marine_snow} particles per view, in Images_wb/ only "
+                                        "(listed in gt/marine_snow.json)"))
     for key, value in rows:
         table.add_row(key, value)
     return table

@@ -304,6 +304,8 @@ class Trainer:
         for name, value in self.model.get_eval_metrics(outputs, batch).items():
             if value is not None:
                 self.writer.scalars({f"eval_image/{name}": value}, step)
+        for name, values in self.model.get_histograms().items():
+            self.writer.histogram(name, values, step)
 
     def eval_all(self, step: int) -> dict[str, float]:
         if not self.datamanager.test_indices:

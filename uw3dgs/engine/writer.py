@@ -1,4 +1,4 @@
-"""TensorBoard events of a run (scalars and images), written into the run folder."""
+"""TensorBoard events of a run (scalars, images and histograms), written into the run folder."""
 
 from __future__ import annotations
 
@@ -19,6 +19,9 @@ class EventWriter:
     def image(self, name: str, image: torch.Tensor, step: int) -> None:
         """`image` is [H, W, 3] in [0, 1]."""
         self._writer.add_image(name, image.detach().clamp(0, 1).cpu(), step, dataformats="HWC")
+
+    def histogram(self, name: str, values: torch.Tensor, step: int) -> None:
+        self._writer.add_histogram(name, values.detach().float().cpu(), step)
 
     def close(self) -> None:
         self._writer.close()

@@ -55,6 +55,8 @@ class Model(nn.Module):
     def __init__(self, config: ModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__()
         self.config = config
+        self.train_indices = list(train_indices)
+        """The scene's views the model trains on (whole-model evaluation numbers are measured over them)."""
         self.scene_extent = scene_extent([scene.cameras[i] for i in train_indices])
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
@@ -84,12 +86,18 @@ class Model(nn.Module):
             metrics["covisible_share"] = float(batch["covisible"].float().mean())
         return metrics
 
-    def get_eval_summary(self, scene: SceneData) -> dict[str, float]:
-        """Whole-model numbers for evaluation (not per view), e.g. the learned medium against ground truth."""
+    def get_eval_summary(self, scene: SceneData) -> dict[str, float | None]:
+        """Whole-model numbers for evaluation (not per view), e.g. the learned medium against ground truth; None
+        where the model cannot give one (reported missing). Called by evaluation outside eval mode: a summary that
+        renders switches to eval mode itself."""
         return {}
 
     def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
         """Named [H, W, 3] images in [0, 1] for TensorBoard and the saved renders."""
+        return {}
+
+    def get_histograms(self) -> dict[str, Tensor]:
+        """Named per-Gaussian values for TensorBoard histograms (logged with the eval image). Default: none."""
         return {}
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:

@@ -2,7 +2,7 @@
 `strategy/`). A strategy takes the Gaussians, their optimizers and its own state, and knows nothing of the
 trainer; a method wires it in with a training callback."""
 
-from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
+from uw3dgs.strategy.base import ExtraPruning, GaussianParameters, OptimizerSurgery
 from uw3dgs.strategy.default import DefaultStrategy, DensificationConfig
 
-__all__ = ["DefaultStrategy", "DensificationConfig", "GaussianParameters", "OptimizerSurgery"]
+__all__ = ["DefaultStrategy", "DensificationConfig", "ExtraPruning", "GaussianParameters", "OptimizerSurgery"]

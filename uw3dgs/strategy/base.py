@@ -31,3 +31,16 @@ class OptimizerSurgery(Protocol):
                       moments_fn: Callable[[Tensor], Tensor]) -> None:
         """Swap `old` for `new` in group `name`, mapping each Adam moment with `moments_fn`."""
         ...
+
+
+class ExtraPruning(Protocol):
+    """A second pruning criterion run inside density control's events (PAUP), with per-Gaussian state that must
+    follow the Gaussians when they are cloned, split or removed."""
+
+    def select(self, step: int) -> Tensor | None:
+        """[N] bool: the Gaussians to remove at this event, or None for none."""
+        ...
+
+    def reindex(self, origin: Tensor) -> None:
+        """The Gaussians changed: `origin` [N'] (long) gives each one's index before, -1 for new ones."""
+        ...

@@ -98,22 +98,35 @@ class DefaultStrategy:
 
     # -- events --
 
-    def step_post_optimizer(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
-                            step: int) -> None:
-        """Densify and prune, or reset opacities, when the schedule says so at `step`."""
+    def is_refine_step(self, step: int) -> bool:
+        """Whether `step_post_optimizer` densifies and prunes at `step`."""
         c = self.config
-        if c.refine_start <= step <= self.refine_stop and step % c.refine_every == 0:
-            self.densify_and_prune(gaussians, optimizers, state, step)
+        return c.refine_start <= step <= self.refine_stop and step % c.refine_every == 0
+
+    def step_post_optimizer(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
+                            step: int, remove: Tensor | None = None) -> Tensor | None:
+        """Densify and prune, or reset opacities, when the schedule says so at `step`. `remove` [N] (bool) names
+        Gaussians another criterion prunes at this event (PAUP's floaters). Returns the event's `origin` map (see
+        `densify_and_prune`), None when nothing changed size."""
+        c = self.config
+        origin = None
+        if self.is_refine_step(step):
+            origin = self.densify_and_prune(gaussians, optimizers, state, step, remove)
         if c.reset_opacity_every > 0 and step > 0 and step % c.reset_opacity_every == 0 and step <= self.refine_stop:
             self.reset_opacity(gaussians, optimizers)
+        return origin
 
     @torch.no_grad()
     def densify_and_prune(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
-                          step: int) -> None:
+                          step: int, remove: Tensor | None = None) -> Tensor:
+        """Clone, split and prune; Gaussians in `remove` [N] (bool) are pruned too and never grow. Returns `origin`
+        [N'] (long): for each Gaussian after the event, its index before it, -1 for the ones it created."""
         c = self.config
         g = gaussians
         avg_grad = state["grad_accum"] / state["visible_count"].clamp_min(1)
         grow = avg_grad >= c.grad_threshold
+        if remove is not None:
+            grow &= ~remove
         max_scale = torch.exp(g.scales.detach()).max(dim=-1).values
         small = max_scale <= c.percent_dense * self.scene_extent
         clone, split = grow & small, grow & ~small
@@ -126,6 +139,8 @@ class DefaultStrategy:
         # split originals are removed; so is what is transparent and, after the first reset, too big
         keep = torch.ones(g.means.shape[0], dtype=torch.bool, device=g.means.device)
         keep[:n_before][split] = False
+        if remove is not None:
+            keep[:n_before] &= ~remove
         keep &= torch.sigmoid(g.opacities.detach()) >= c.min_opacity
         if c.reset_opacity_every > 0 and step > c.reset_opacity_every:
             scale_now = torch.exp(g.scales.detach()).max(dim=-1).values
@@ -136,6 +151,9 @@ class DefaultStrategy:
             keep &= ~too_big
         self._keep(g, optimizers, keep)
         state.update(self.initialize_state(g))
+        origin = torch.cat([torch.arange(n_before, device=keep.device),
+                            torch.full((len(keep) - n_before,), -1, dtype=torch.long, device=keep.device)])
+        return origin[keep]
 
     @staticmethod
     def _clone_values(g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:

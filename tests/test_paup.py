@@ -1,0 +1,277 @@
+"""PAUP: the statistics U and P against hand values, gradients through the relaxed mask, hard pruning of a planted
+floater, the statistics following densification and resume, and the no-paup ablation equal to the branch never
+starting."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from uw3dgs.cameras import Camera
+from uw3dgs.data.scene import SceneData
+from uw3dgs.engine.optimizers import Optimizers
+from uw3dgs.engine.trainer import Trainer
+from uw3dgs.methods.gaussian_splatting import COVERAGE_EPS, DensityControl
+from uw3dgs.methods.uw3dgs import UW3DGSModelConfig, uw3dgs_optimizers
+from uw3dgs.paup import PAUP, FloaterScorer, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
+from uw3dgs.registry import METHODS
+from uw3dgs.strategy import DefaultStrategy
+
+
+def train(config):
+    trainer = Trainer(config)
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+def tiny_uw3dgs(make_config, name: str = "uw3dgs", steps: int = 30, paup_start: int = 5, **paup):
+    """The tiny 3DGS schedule (densify from 10 every 10) on a uw3dgs variant, PAUP from `paup_start` every 5."""
+    spec = METHODS[name].config
+    base = make_config(steps=steps, timestamp=f"{name}-{paup_start}")
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
+                                paup=PAUPConfig(start=paup_start, every=5, **paup))
+    return dataclasses.replace(base, method_name=name, model=model, optimizers=spec.optimizers)
+
+
+# -- the statistics --
+
+def test_u_and_p_against_hand_values():
+    """Two Gaussians, three views on a 2 x 2 image whose rendered range is 4 everywhere. A is seen in every view
+    (effective opacities 0.5, 0.5, 0.2; one colour), B only in view 0 (0.9 over 3 pixels; red, green, blue)."""
+    surface, alpha = torch.full((2, 2), 4.0), torch.ones(2, 2)
+    opacities, beta_d, scale = torch.tensor([0.8, 0.6]), torch.tensor([[0.1, 0.2, 0.3]] * 2), 2.0
+    own = torch.tensor([4.0, 2.0])
+    radii = torch.tensor([1, 1])
+    views = []
+    for k, (weights, counts, b_color) in enumerate([((1.0, 0.9), (2, 3), (1.0, 0.0, 0.0)),
+                                                    ((0.5, 0.0), (1, 0), (0.0, 1.0, 0.0)),
+                                                    ((0.4, 0.0), (2, 0), (0.0, 0.0, 1.0))]):
+        colors = torch.tensor([[0.2, 0.4, 0.6], list(b_color)])
+        b_pixel = (1.5, 1.5) if k == 0 else (5.0, 5.0)  # outside the image in views 1 and 2
+        means2d = torch.tensor([[0.5, 0.5], list(b_pixel)])
+        views.append(observe_view(torch.tensor(weights), torch.tensor(counts), colors, means2d, radii, own, surface,
+                                  alpha, opacities, beta_d, scale, COVERAGE_EPS))
+    u, p, measured = combine_views(views, opacity_weight=0.4, color_weight=0.6)
+
+    var_a = ((0.5 - 0.4) ** 2 + (0.5 - 0.4) ** 2 + (0.2 - 0.4) ** 2) / 3  # population variance over the 3 views
+    var_b = ((0.3 - 0.1) ** 2 + 0.1 ** 2 + 0.1 ** 2) / 3
+    color_var_b = 2.0 / 3.0  # ||(1,0,0) - (1/3,1/3,1/3)||^2 = 2/3 in each view
+    attenuation = [1 - sum(math.exp(-b * d * scale) for b in (0.1, 0.2, 0.3)) / 3 for d in (4.0, 2.0)]
+    torch.testing.assert_close(u, torch.tensor([0.4 * var_a, 0.4 * var_b + 0.6 * color_var_b]))
+    # A sits on the surface in all three views; B, at range 2 under a surface at 4 (median 4), in view 0 only
+    torch.testing.assert_close(p, torch.tensor([0.8 * attenuation[0], 2.0 / 4.0 + 0.6 * attenuation[1]]))
+    assert measured.tolist() == [True, True]
+
+
+def test_a_gaussian_no_view_holds_is_not_measured_and_scores_neutral():
+    surface, alpha = torch.full((2, 2), 4.0), torch.ones(2, 2)
+    view = observe_view(torch.tensor([1.0, 0.0]), torch.tensor([2, 0]), torch.zeros(2, 3),
+                        torch.tensor([[0.5, 0.5], [9.0, 9.0]]), torch.tensor([1, 0]), torch.tensor([4.0, 4.0]),
+                        surface, alpha, torch.ones(2), None, 1.0, COVERAGE_EPS)
+    _, _, measured = combine_views([view, view], 0.4, 0.6)
+    assert measured.tolist() == [True, False]
+
+    paup = PAUP(PAUPConfig(normalize_scores=False), num_gaussians=4)
+    paup.update(torch.tensor([0.1, 0.3, 0.2, 9.0]), torch.tensor([1.0, 3.0, 2.0, 9.0]),
+                torch.tensor([True, True, True, False]))
+    u, p = paup.filled()
+    assert u.tolist() == pytest.approx([0.1, 0.3, 0.2, 0.2]) and p.tolist() == [1.0, 3.0, 2.0, 2.0]  # medians
+    normalized = PAUP(PAUPConfig(), num_gaussians=3)
+    normalized.update(torch.tensor([1.0, 2.0, 6.0]), torch.tensor([0.5, 1.0, 3.0]), torch.ones(3, dtype=torch.bool))
+    assert normalized.uncertainty.tolist() == pytest.approx([1 / 3, 2 / 3, 2])  # in units of their mean
+    assert normalized.implausibility.tolist() == pytest.approx([1 / 3, 2 / 3, 2])
+
+
+def test_phi_starts_rising_with_the_score_at_its_stated_midpoint():
+    scorer = FloaterScorer(hidden_units=32, init_weight=0.5, init_score=4.0, init_sharpness=2.0)
+    pus = torch.tensor([0.0, 1.0, 4.0, 6.0])
+    torch.testing.assert_close(scorer(pus), torch.sigmoid(2.0 * (pus - 4.0)))
+    torch.testing.assert_close(scorer.w_u, torch.tensor(0.5))
+    rng = torch.get_rng_state()
+    FloaterScorer(32, 0.5, 4.0, 2.0)
+    assert torch.equal(rng, torch.get_rng_state())  # building it draws nothing from the run's generator
+
+
+def test_relaxed_keep_mask_gradient_matches_finite_differences():
+    p = torch.tensor([0.1, 0.5, 0.93], dtype=torch.float64, requires_grad=True)
+    torch.manual_seed(3)
+    s = relaxed_keep_mask(p, temperature=0.5)
+    (grad,) = torch.autograd.grad(s.sum(), p)
+    eps = 1e-6
+    for i in range(3):
+        shifted = [p.detach().clone() for _ in range(2)]
+        shifted[0][i] += eps
+        shifted[1][i] -= eps
+        values = []
+        for q in shifted:
+            torch.manual_seed(3)  # the same uniform draws
+            values.append(relaxed_keep_mask(q, temperature=0.5)[i])
+        assert float(grad[i]) == pytest.approx(float((values[0] - values[1]) / (2 * eps)), rel=1e-5)
+    assert ((s > 0) & (s < 1)).all()
+
+
+# -- a planted floater on a plane --
+
+HEIGHT = 3.0
+
+
+def look_down(x: float, y: float, width: int = 40, height: int = 30, focal: float = 40.0) -> Camera:
+    # camera at (x, y, HEIGHT) looking down -z: x right, y flipped, z forward
+    viewmat = torch.eye(4)
+    viewmat[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+    viewmat[:3, 3] = -viewmat[:3, :3] @ torch.tensor([x, y, HEIGHT])
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    return Camera(viewmat, K, width, height)
+
+
+def planted_floater_model():
+    """An opaque plane of small Gaussians that all three downward cameras see whole, and one opaque Gaussian 0.5
+    below camera 0 and to its side, inside view 0 only, in open water there (the last Gaussian). It hides no part
+    of the plane: a Gaussian of the plane hidden in one view is as view-inconsistent as the floater by U and P
+    (docs/methods/uw3dgs.md, "What PAUP's statistics see")."""
+    xs = torch.arange(-0.4, 0.4001, 0.05)  # well inside every view: no Gaussian of it is cut by an image border
+    gx, gy = torch.meshgrid(xs, xs, indexing="ij")
+    plane = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.zeros(gx.numel())], dim=-1)
+    floater = torch.tensor([[-0.2, 0.0, HEIGHT - 0.5]])
+    means = torch.cat([plane, floater])
+    cameras = [look_down(0.0, 0.0), look_down(0.6, 0.0), look_down(0.0, 0.6)]
+    scene = SceneData(name="plane", image_names=["0", "1", "2"], images=torch.zeros(3, 30, 40, 3), cameras=cameras,
+                      points=means, point_colors=torch.full_like(means, 0.5), near=0.1, far=10.0)
+    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0))
+    model = config.setup(scene=scene, train_indices=[0, 1, 2])
+    with torch.no_grad():
+        model.gaussians.scales.copy_(torch.log(torch.cat([torch.full((len(plane), 3), 0.03),
+                                                           torch.full((1, 3), 0.03)])))
+        model.gaussians.opacities.fill_(torch.logit(torch.tensor(0.99)).item())
+    return model, cameras
+
+
+def test_a_planted_floater_gets_the_highest_m_and_is_pruned_at_the_next_event():
+    model, cameras = planted_floater_model()
+    n = model.num_gaussians
+    assert [int(model.render(c)["pixel_count"][-1] > 0) for c in cameras] == [1, 0, 0]  # only view 0 sees it
+    model.refresh_paup_statistics(cameras[0])
+    assert bool(model.paup.measured.all())
+    m = model.paup.scores()[1].detach()
+    assert int(m.argmax()) == n - 1 and float(m[-1]) > 0.5
+    assert float(m[:-1].max()) < 0.5
+
+    optimizers = Optimizers(uw3dgs_optimizers(paup=True), model.param_groups(), model.scene_extent, 1000)
+    control = DensityControl(DefaultStrategy(model.config.densification, model.scene_extent, 1000), model.gaussians,
+                             optimizers, extra_pruning=model.paup)
+    plane = model.gaussians.means[:-1].detach().clone()
+    control.after_step(500, {"camera": cameras[0]}, {})
+    assert model.num_gaussians == n - 1 and torch.equal(model.gaussians.means.detach(), plane)
+    assert int(model.paup.pruned_total) == 1 and model.paup.pruned_share == pytest.approx(1 / n)
+    assert len(model.paup.uncertainty) == n - 1  # the statistics followed
+    for name in ("means", "opacities"):  # so did the Adam state (none yet) and the optimizer's parameters
+        assert optimizers.optimizers[name].param_groups[0]["params"][0] is getattr(model.gaussians, name)
+
+
+def test_statistics_follow_densification():
+    paup = PAUP(PAUPConfig(normalize_scores=False), num_gaussians=3)
+    paup.update(torch.tensor([0.1, 0.2, 0.3]), torch.tensor([1.0, 2.0, 3.0]), torch.ones(3, dtype=torch.bool))
+    paup.reindex(torch.tensor([0, 2, -1, -1]))  # 1 removed, two new ones
+    assert paup.uncertainty.tolist() == pytest.approx([0.1, 0.3, 0.0, 0.0])
+    assert paup.measured.tolist() == [True, True, False, False]
+    assert int(paup.created_total) == 5
+    assert paup.select(step=0) is None or not bool(paup.select(step=0)[2:].any())  # never the unmeasured ones
+
+
+def test_gradients_reach_the_scorer_through_the_mask_and_eval_renders_without_it():
+    model, cameras = planted_floater_model()
+    model.train()
+    model.paup.set_step(0)  # the statistics are due
+    outputs = model.get_outputs(cameras[1])
+    assert bool(model.paup.has_statistics) and "uri_full" in outputs
+    losses = model.get_loss_dict(outputs, {"camera": cameras[1], "image": torch.zeros(30, 40, 3)}, step=0)
+    assert "paup_loss" in losses
+    sum(losses.values()).backward()
+    scorer = model.paup.scorer
+    for name, param in [("w_u", scorer.raw_w_u), ("w_p", scorer.raw_w_p), *scorer.phi.named_parameters()]:
+        assert param.grad is not None and torch.isfinite(param.grad).all(), name
+    assert float(scorer.raw_w_u.grad.abs()) > 0 and float(scorer.raw_w_p.grad.abs()) > 0
+    assert float(scorer.phi[2].weight.grad.abs().sum()) > 0
+
+    model.eval()
+    with torch.no_grad():
+        first, second = model.get_outputs(cameras[1]), model.get_outputs(cameras[1])
+        plain = model.render(cameras[1], depth_weights=model.depth_weights())
+    assert "uri_full" not in first
+    assert torch.equal(first["uri"], second["uri"]) and torch.equal(first["uri"], plain["radiance"])
+
+
+def test_uncertainty_weighted_depth_against_a_per_gaussian_sum():
+    """With the weights (1 - U_i) the depth is sum w_i d_i z_i / sum w_i d_i: checked by splitting the render into
+    one image per Gaussian (the blending weights do not depend on the depth weights)."""
+    model, cameras = planted_floater_model()
+    camera = cameras[0]
+    weights = torch.rand(model.num_gaussians, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        got = model.render(camera, depth_weights=weights)
+        means = model.gaussians.means
+        z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
+        plain = model.render(camera)
+        num = model.render(camera, depth_weights=weights * 0 + 1)  # weights of one: the plain depth
+    torch.testing.assert_close(num["depth"], plain["depth"], rtol=1e-5, atol=1e-6)
+    # brute force: composite (d_i z_i) and d_i as features with the reference rasterizer in float64
+    from uw3dgs.render.reference import rasterize_reference
+
+    m, s, q, o = (t.double() for t in model.gaussians.activated())
+    feats = torch.stack([weights.double(), weights.double() * z.double()], dim=-1)
+    ref = rasterize_reference(m, q, s, o, feats, camera.viewmat.double(), camera.K.double(), camera.width,
+                              camera.height, model.config.raster)
+    covered = ref.render[..., 0] > COVERAGE_EPS
+    expected = ref.render[..., 1][covered] / ref.render[..., 0][covered]
+    torch.testing.assert_close(got["depth"][covered].double(), expected, rtol=1e-4, atol=1e-5)
+
+
+# -- whole runs --
+
+def test_no_paup_equals_the_branch_never_starting(make_config):
+    """`uw3dgs-no-paup` is `uw3dgs` without the branch: the same seed and steps give the same parameters as a
+    `uw3dgs` run whose PAUP starts after the last step (densification events and all)."""
+    never = train(tiny_uw3dgs(make_config, "uw3dgs", steps=25, paup_start=1000))
+    ablation = train(tiny_uw3dgs(make_config, "uw3dgs-no-paup", steps=25, paup_start=1000))
+    assert ablation.model.paup is None
+    a, b = never.model.state_dict(), ablation.model.state_dict()
+    for key in b:
+        assert torch.equal(a[key], b[key]), key
+    assert set(a) - set(b) == {k for k in a if k.startswith("paup.")}
+
+
+def test_paup_trains_prunes_on_schedule_and_resumes(make_config, monkeypatch):
+    config = tiny_uw3dgs(make_config, "uw3dgs", steps=30, paup_start=5)
+    full = train(dataclasses.replace(config, timestamp="full"))
+    reference = {key: value.clone() for key, value in full.model.state_dict().items()}
+    assert bool(full.model.paup.measured.any())
+    assert len(full.model.paup.uncertainty) == full.model.num_gaussians
+    summary = full.eval_all(30)
+    assert 0.0 <= summary["pruned_share"] <= 1.0 and "floater_ratio" in summary
+    losses, metrics = full.train_step(31)
+    assert "paup_loss" in losses and "paup/w_u" in metrics
+
+    killed = Trainer(dataclasses.replace(config, timestamp="killed"))
+    killed.setup()
+    original = Trainer.train_step
+
+    def dies_after_22(self, step):
+        if step == 23:
+            raise KeyboardInterrupt
+        return original(self, step)
+
+    monkeypatch.setattr(Trainer, "train_step", dies_after_22)
+    with pytest.raises(KeyboardInterrupt):
+        killed.train()
+    monkeypatch.setattr(Trainer, "train_step", original)
+    resumed = Trainer(dataclasses.replace(config, timestamp="killed", resume=True))
+    resumed.setup()
+    resumed.train()
+    resumed_state = resumed.model.state_dict()
+    assert reference.keys() == resumed_state.keys()
+    for key, value in reference.items():
+        torch.testing.assert_close(value, resumed_state[key], rtol=1e-5, atol=1e-6, msg=key)

@@ -1,0 +1,61 @@
+"""The learned part of PAUP: PUS_i = w_u U_i + w_p P_i and the floater probability m_i = sigmoid(phi(PUS_i)),
+and the relaxed-Bernoulli keep mask that lets gradients reach them."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+
+class FloaterScorer(nn.Module):
+    """w_u, w_p (kept positive through a softplus: they weight L_beta, where a negative PUS would push beta away
+    from its prior) and phi, a 2-layer MLP (1 -> hidden -> 1, ReLU)."""
+
+    def __init__(self, hidden_units: int, init_weight: float, init_score: float, init_sharpness: float):
+        super().__init__()
+        raw = math.log(math.expm1(init_weight))  # softplus^-1
+        self.raw_w_u = nn.Parameter(torch.tensor(raw))
+        self.raw_w_p = nn.Parameter(torch.tensor(raw))
+        # drawn from a copy of the global generator: adding the branch leaves every other random draw of the run
+        # as it was (a run whose PAUP never starts is the no-paup run, bit for bit)
+        with torch.random.fork_rng(devices=[]):
+            self.phi = nn.Sequential(nn.Linear(1, hidden_units), nn.ReLU(), nn.Linear(hidden_units, 1))
+        with torch.no_grad():
+            # phi starts as sharpness * (PUS - init_score) for PUS >= 0 (m = 1/2 at init_score, rising with the
+            # score); the other hidden units start as kinks spread over [0, 2 init_score] with no say yet
+            hidden, out = self.phi[0], self.phi[2]
+            hidden.weight.fill_(1.0)
+            hidden.bias.copy_(-torch.linspace(0.0, 2.0 * init_score, hidden_units))
+            out.weight.zero_()
+            out.weight[0, 0] = init_sharpness
+            out.bias.fill_(-init_sharpness * init_score)
+
+    @property
+    def w_u(self) -> Tensor:
+        return nn.functional.softplus(self.raw_w_u)
+
+    @property
+    def w_p(self) -> Tensor:
+        return nn.functional.softplus(self.raw_w_p)
+
+    def score(self, uncertainty: Tensor, implausibility: Tensor) -> Tensor:
+        """PUS [N] from U [N] and P [N]."""
+        return self.w_u * uncertainty + self.w_p * implausibility
+
+    def forward(self, pus: Tensor) -> Tensor:
+        """m [N] in (0, 1), the probability that each Gaussian is a floater."""
+        return torch.sigmoid(self.phi(pus[:, None]))[:, 0]
+
+    def weight_penalty(self) -> Tensor:
+        """||phi||^2: the squared norm of all of phi's weights and biases."""
+        return sum(p.square().sum() for p in self.phi.parameters())
+
+
+def relaxed_keep_mask(keep_probability: Tensor, temperature: float) -> Tensor:
+    """A Gumbel-Softmax (binary Concrete) sample s [N] in (0, 1) of Bernoulli(keep_probability [N]): s =
+    sigmoid((logit p + log u - log(1 - u)) / temperature), u ~ U(0, 1); differentiable in p."""
+    p = keep_probability.clamp(1e-6, 1 - 1e-6)
+    u = torch.rand_like(p).clamp(1e-6, 1 - 1e-6)
+    return torch.sigmoid((torch.log(p) - torch.log1p(-p) + torch.log(u) - torch.log1p(-u)) / temperature)
