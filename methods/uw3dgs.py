@@ -240,20 +240,22 @@ class UW3DGSModel(GaussianSplattingModel):
             if len(means) > c.beta_loss_samples:  # an unbiased estimate of the mean over all centres
                 picked = torch.randint(len(means), (c.beta_loss_samples,), device=means.device)
                 means = means[picked]
-            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, self.beta_loss_weights(picked))
+            weights = self.beta_loss_weights(outputs, picked)
+            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, weights)
         if c.depth_loss_weight > 0:
             losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
         if "uri_full" in outputs:
             losses["paup_loss"] = self.paup.loss(outputs["uri_full"], outputs["uri"], outputs["floater_probability"])
         return losses
 
-    def beta_loss_weights(self, picked: Tensor | None) -> Tensor | None:
-        """PUS_i of the Gaussians whose centres L_beta reads (`picked` indices, None = all), detached (a weight, not
-        a target: L_beta must not train the scorer); None (PUS = 1) without PAUP statistics."""
-        if self.paup is None or not self.paup.has_statistics:
+    @staticmethod
+    def beta_loss_weights(outputs: dict[str, Any], picked: Tensor | None) -> Tensor | None:
+        """PUS_i of the Gaussians whose centres L_beta reads (`picked` indices, None = all), from the step's PAUP
+        render and detached (a weight, not a target: L_beta must not train the scorer); None (PUS = 1) when the
+        step had no PAUP branch."""
+        if "pus" not in outputs:
             return None
-        with torch.no_grad():
-            pus = self.paup.scores()[0]
+        pus = outputs["pus"].detach()
         return pus if picked is None else pus[picked]
 
     def medium_summary(self) -> dict[str, Tensor]:

@@ -11,6 +11,7 @@ import torch
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
 from uw3dgs.engine.config import TrainConfig
+from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 
 torch.set_num_threads(2)
@@ -46,3 +47,29 @@ def make_config(tmp_path, cache_dir, tiny_scene_config):
         return tiny_train_config(tmp_path / "outputs", cache_dir, tiny_scene_config, steps, reset_opacity_every,
                                  **overrides)
     return make
+
+
+def train(config: TrainConfig) -> Trainer:
+    """Set up and train a run to its end."""
+    trainer = Trainer(config)
+    trainer.setup()
+    trainer.train()
+    return trainer
+
+
+def train_until_killed(config: TrainConfig, monkeypatch, step: int) -> Trainer:
+    """Set up and train a run that is killed (KeyboardInterrupt) as step `step` begins; the loop is restored."""
+    trainer = Trainer(config)
+    trainer.setup()
+    original = Trainer.train_step
+
+    def dies(self, current):
+        if current == step:
+            raise KeyboardInterrupt  # the process is killed mid-run
+        return original(self, current)
+
+    monkeypatch.setattr(Trainer, "train_step", dies)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train()
+    monkeypatch.setattr(Trainer, "train_step", original)
+    return trainer

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import tiny_train_config
+from conftest import tiny_train_config, train
 
 from uw3dgs.cli.eval import EvalArgs, print_results, run_eval
 from uw3dgs.cli.eval import entrypoint as uw_eval
@@ -40,13 +40,6 @@ from uw3dgs.strategy import DensificationConfig
 
 TINY_SCENE = ["synthetic", "--datamanager.scene.width", "48", "--datamanager.scene.height", "36",
               "--datamanager.scene.num-views", "12"]
-
-
-def train(config) -> Trainer:
-    trainer = Trainer(config)
-    trainer.setup()
-    trainer.train()
-    return trainer
 
 
 def snapshot(folder: Path) -> dict[str, bytes]:

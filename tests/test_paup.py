@@ -9,6 +9,7 @@ import math
 
 import pytest
 import torch
+from conftest import train, train_until_killed
 
 from uw3dgs.cameras import Camera
 from uw3dgs.data.scene import SceneData
@@ -19,13 +20,6 @@ from uw3dgs.methods.uw3dgs import UW3DGSModelConfig, uw3dgs_optimizers
 from uw3dgs.paup import PAUP, FloaterScorer, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.registry import METHODS
 from uw3dgs.strategy import DefaultStrategy
-
-
-def train(config):
-    trainer = Trainer(config)
-    trainer.setup()
-    trainer.train()
-    return trainer
 
 
 def tiny_uw3dgs(make_config, name: str = "uw3dgs", steps: int = 30, paup_start: int = 5, **paup):
@@ -255,19 +249,7 @@ def test_paup_trains_prunes_on_schedule_and_resumes(make_config, monkeypatch):
     losses, metrics = full.train_step(31)
     assert "paup_loss" in losses and "paup/w_u" in metrics
 
-    killed = Trainer(dataclasses.replace(config, timestamp="killed"))
-    killed.setup()
-    original = Trainer.train_step
-
-    def dies_after_22(self, step):
-        if step == 23:
-            raise KeyboardInterrupt
-        return original(self, step)
-
-    monkeypatch.setattr(Trainer, "train_step", dies_after_22)
-    with pytest.raises(KeyboardInterrupt):
-        killed.train()
-    monkeypatch.setattr(Trainer, "train_step", original)
+    train_until_killed(dataclasses.replace(config, timestamp="killed"), monkeypatch, step=23)
     resumed = Trainer(dataclasses.replace(config, timestamp="killed", resume=True))
     resumed.setup()
     resumed.train()
@@ -275,3 +257,18 @@ def test_paup_trains_prunes_on_schedule_and_resumes(make_config, monkeypatch):
     assert reference.keys() == resumed_state.keys()
     for key, value in reference.items():
         torch.testing.assert_close(value, resumed_state[key], rtol=1e-5, atol=1e-6, msg=key)
+
+
+@pytest.mark.parametrize("flag, value, message", [
+    ("--model.paup.prune-quantile", "1.5", "must be a finite number > 0 and < 1, got 1.5"),
+    ("--model.paup.num-views", "1", "must be a whole number >= 2, got 1"),
+    ("--model.paup.mask-temperature", "0", "must be a finite number > 0, got 0.0"),
+])
+def test_a_bad_paup_option_is_one_line_naming_it(tmp_path, capsys, flag, value, message):
+    from uw3dgs.cli.train import entrypoint as uw_train
+
+    with pytest.raises(SystemExit) as exc:
+        uw_train(["uw3dgs", "--output-dir", str(tmp_path / "out"), flag, value])
+    out = capsys.readouterr().out
+    assert exc.value.code == 2 and f"error: {flag} {message}" in out, out
+    assert "Traceback" not in out and not (tmp_path / "out").exists()

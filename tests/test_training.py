@@ -8,18 +8,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import train, train_until_killed
 
 from uw3dgs.cli.eval import EvalArgs, run_eval
 from uw3dgs.config import load_config
 from uw3dgs.engine.checkpoint import list_checkpoints
 from uw3dgs.engine.trainer import Trainer, TrainingDivergedError
-
-
-def train(config):
-    trainer = Trainer(config)
-    trainer.setup()
-    trainer.train()
-    return trainer
 
 
 def test_training_learns_and_writes_the_run_folder(make_config):
@@ -56,19 +50,7 @@ def test_resume_matches_an_uninterrupted_run(make_config, monkeypatch):
     assert len(fits) == 1
 
     config = make_config(steps=40, reset_opacity_every=15, timestamp="killed")
-    killed = Trainer(config)
-    killed.setup()
-    original = Trainer.train_step
-
-    def dies_after_25(self, step):
-        if step == 26:
-            raise KeyboardInterrupt  # the process is killed mid-run
-        return original(self, step)
-
-    monkeypatch.setattr(Trainer, "train_step", dies_after_25)
-    with pytest.raises(KeyboardInterrupt):
-        killed.train()
-    monkeypatch.setattr(Trainer, "train_step", original)
+    killed = train_until_killed(config, monkeypatch, step=26)
     assert [p.name for p in list_checkpoints(killed.run_dir)] == ["step-000020.ckpt"]
 
     resumed = Trainer(dataclasses.replace(config, resume=True))

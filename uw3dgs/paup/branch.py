@@ -96,6 +96,9 @@ class PAUP(nn.Module):
         """Gaussians that ever existed in the run (initial ones + all densification created)."""
         self.register_buffer("last_pruned", torch.tensor(0, dtype=torch.long))
         self.step = 0
+        self._filled: tuple[Tensor, Tensor, bool] | None = None
+        """(U, P with neutral values, any measured): read several times a step, so kept until the statistics
+        change (`update`, `reindex`, loading, a device move)."""
 
     # -- schedule --
 
@@ -112,13 +115,14 @@ class PAUP(nn.Module):
 
     @property
     def has_statistics(self) -> bool:
-        return bool(self.measured.any())
+        return self._filled_statistics()[2]
 
     # -- statistics and scores --
 
     def update(self, uncertainty: Tensor, implausibility: Tensor, measured: Tensor) -> None:
-        """Store a refresh's U, P [N] for the Gaussians it measured (`measured` [N] bool), in units of their median
+        """Store a refresh's U, P [N] for the Gaussians it measured (`measured` [N] bool), in units of their mean
         over those with `normalize_scores`; the others keep what they had."""
+        self._filled = None
         if self.config.normalize_scores and bool(measured.any()):
             uncertainty = uncertainty / uncertainty[measured].mean().clamp_min(1e-12)
             implausibility = implausibility / implausibility[measured].mean().clamp_min(1e-12)
@@ -128,10 +132,16 @@ class PAUP(nn.Module):
 
     def filled(self) -> tuple[Tensor, Tensor]:
         """(U, P) [N] with the neutral values (medians over measured Gaussians) where unmeasured."""
-        u, p, known = self.uncertainty, self.implausibility, self.measured
-        if bool(known.all()) or not bool(known.any()):
-            return u, p
-        return (torch.where(known, u, u[known].median()), torch.where(known, p, p[known].median()))
+        return self._filled_statistics()[:2]
+
+    def _filled_statistics(self) -> tuple[Tensor, Tensor, bool]:
+        if self._filled is None:
+            u, p, known = self.uncertainty, self.implausibility, self.measured
+            any_known = bool(known.any())
+            if any_known and not bool(known.all()):
+                u, p = torch.where(known, u, u[known].median()), torch.where(known, p, p[known].median())
+            self._filled = (u, p, any_known)
+        return self._filled
 
     def scores(self) -> tuple[Tensor, Tensor]:
         """(PUS [N], m [N]), differentiable in the scorer's parameters."""
@@ -175,6 +185,7 @@ class PAUP(nn.Module):
     @torch.no_grad()
     def reindex(self, origin: Tensor) -> None:
         """Follow density control: survivors keep their statistics, new Gaussians have none."""
+        self._filled = None
         old = origin >= 0
         for name in PER_GAUSSIAN_BUFFERS:
             values = getattr(self, name)
@@ -190,7 +201,12 @@ class PAUP(nn.Module):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         """Checkpoints hold however many Gaussians training had reached: resize before loading."""
+        self._filled = None
         for name in PER_GAUSSIAN_BUFFERS:
             if prefix + name in state_dict:
                 setattr(self, name, torch.empty_like(state_dict[prefix + name]))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def _apply(self, fn, *args, **kwargs):
+        self._filled = None  # .to(device) replaces the buffers
+        return super()._apply(fn, *args, **kwargs)
