@@ -78,8 +78,8 @@ class GaussianSplattingModel(Model):
             return torch.rand(3, device=device)
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
-    def render(self, camera: Camera, keep: Tensor | None = None,
-               depth_weights: Tensor | None = None) -> dict[str, Any]:
+    def render(self, camera: Camera, keep: Tensor | None = None, depth_weights: Tensor | None = None,
+               frozen: bool = False) -> dict[str, Any]:
         """Rasterize the Gaussians' view-dependent colours seen from `camera`, no background:
         'radiance' [H, W, 3] = sum_i w_i c_i; 'alpha' [H, W] coverage; 'depth' [H, W] expected camera-space z of
         the covered part (0 where uncovered); 'range' [H, W] the same along the ray from the camera centre
@@ -90,11 +90,14 @@ class GaussianSplattingModel(Model):
 
         `keep` [N] in [0, 1] scales the opacities (PAUP's relaxed keep mask). `depth_weights` [N] >= 0 weight each
         Gaussian's share of the depth (the paper's (1 - U_i)): depth = sum_i w_i d_i z_i / sum_i w_i d_i, the
-        unweighted depth where a covered pixel's weights sum to nothing."""
+        unweighted depth where a covered pixel's weights sum to nothing. `frozen` renders the Gaussians detached:
+        gradients reach `keep` and `depth_weights` only."""
         means, scales, quats, opacities = self.gaussians.activated()
+        colors = self.gaussians.colors(camera.center)
+        if frozen:
+            means, scales, quats, opacities, colors = (t.detach() for t in (means, scales, quats, opacities, colors))
         if keep is not None:
             opacities = opacities * keep
-        colors = self.gaussians.colors(camera.center)
         if depth_weights is not None:  # the weighted depth composites as two more feature channels
             z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
             colors = torch.cat([colors, depth_weights[:, None], (depth_weights * z)[:, None]], dim=-1)

@@ -171,18 +171,19 @@ class UW3DGSModel(GaussianSplattingModel):
         return outputs
 
     def render_enhanced(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
-        """Training render with PAUP: `render`'s outputs for I_UR^Enh (opacities times a relaxed keep mask s_i ~
-        Bernoulli(1 - m_i); 'radiance' is I_UR^Enh), plus 'uri_full' [H, W, 3] the unmasked I_UR (no gradient: the
-        target L_PAPSL pulls I_UR^Enh to), 'pus' and 'floater_probability' [N]. Refreshes the statistics first
+        """Training render with PAUP: `render`'s outputs (the UWI is formed from this full I_UR, as evaluation
+        renders it), plus 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered frozen with their opacities
+        times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i; `--model.paup.mask`), so
+        L_PAPSL trains the scorer alone; and 'pus', 'floater_probability' [N]. Refreshes the statistics first
         when they are due."""
         if self.paup.refresh_due:
             self.refresh_paup_statistics(camera)
             depth_weights = self.depth_weights()
         pus, m = self.paup.scores()
-        keep = relaxed_keep_mask(1.0 - m, self.config.paup.mask_temperature)
-        outputs = self.render(camera, keep=keep, depth_weights=depth_weights)
-        with torch.no_grad():
-            outputs["uri_full"] = self.render(camera)["radiance"]
+        c = self.config.paup
+        keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
+        outputs = self.render(camera, depth_weights=depth_weights)
+        outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True)["radiance"]
         outputs.update(pus=pus, floater_probability=m)
         return outputs
 
@@ -244,8 +245,9 @@ class UW3DGSModel(GaussianSplattingModel):
             losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, weights)
         if c.depth_loss_weight > 0:
             losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
-        if "uri_full" in outputs:
-            losses["paup_loss"] = self.paup.loss(outputs["uri_full"], outputs["uri"], outputs["floater_probability"])
+        if "uri_enhanced" in outputs:
+            losses["paup_loss"] = self.paup.loss(outputs["uri"].detach(), outputs["uri_enhanced"],
+                                                 outputs["floater_probability"])
         return losses
 
     @staticmethod

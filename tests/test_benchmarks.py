@@ -179,3 +179,29 @@ def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
     assert len(rows) == 6 and rows[0].split()[0] == "now"
     assert gaussians_module.eval_sh_split is sh and VMField.forward is medium
+
+
+def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cache_dir, tiny_scene_config,
+                                                                   monkeypatch, capsys, keep_threads):
+    spec = METHODS["uw3dgs"].config
+    base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=20, timestamp="paup")
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
+                                paup=dataclasses.replace(spec.model.paup, start=10, every=5))
+    trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers))
+    trainer.setup()
+    trainer.train()
+    script = load_script("paup_cost")
+    # the way without the branch trains as uw3dgs-no-paup does: no masked render, no L_PAPSL, no PAUP pruning
+    batch = trainer.datamanager.next_train()
+    with_branch = trainer.model.get_outputs(batch["camera"])
+    script.without_paup(trainer)
+    without = trainer.model.get_outputs(batch["camera"])
+    assert "uri_enhanced" in with_branch and "uri_enhanced" not in without and "pus" not in without
+    assert "paup_loss" not in trainer.model.get_loss_dict(without, batch, 21)
+    assert all(getattr(cb, "extra_pruning", None) is None for cb in trainer.callbacks)
+    monkeypatch.setattr(sys, "argv", ["paup_cost", str(trainer.run_dir / "config.yml"), "--steps", "3",
+                                      "--rounds", "1"])
+    script.main()
+    rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
+    assert [r.split("(")[0].strip() for r in rows] == ["without PAUP", "with PAUP"]
+    assert rows[0].rstrip().endswith("1.00x")

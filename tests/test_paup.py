@@ -122,7 +122,7 @@ def look_down(x: float, y: float, width: int = 40, height: int = 30, focal: floa
     return Camera(viewmat, K, width, height)
 
 
-def planted_floater_model():
+def planted_floater_model(mask: str = "expected"):
     """An opaque plane of small Gaussians that all three downward cameras see whole, and one opaque Gaussian 0.5
     below camera 0 and to its side, inside view 0 only, in open water there (the last Gaussian). It hides no part
     of the plane: a Gaussian of the plane hidden in one view is as view-inconsistent as the floater by U and P
@@ -135,7 +135,7 @@ def planted_floater_model():
     cameras = [look_down(0.0, 0.0), look_down(0.6, 0.0), look_down(0.0, 0.6)]
     scene = SceneData(name="plane", image_names=["0", "1", "2"], images=torch.zeros(3, 30, 40, 3), cameras=cameras,
                       points=means, point_colors=torch.full_like(means, 0.5), near=0.1, far=10.0)
-    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0))
+    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0, mask=mask))
     model = config.setup(scene=scene, train_indices=[0, 1, 2])
     with torch.no_grad():
         model.gaussians.scales.copy_(torch.log(torch.cat([torch.full((len(plane), 3), 0.03),
@@ -176,14 +176,26 @@ def test_statistics_follow_densification():
     assert paup.select(step=0) is None or not bool(paup.select(step=0)[2:].any())  # never the unmeasured ones
 
 
-def test_gradients_reach_the_scorer_through_the_mask_and_eval_renders_without_it():
-    model, cameras = planted_floater_model()
+@pytest.mark.parametrize("mask", ["expected", "concrete"])
+def test_gradients_reach_the_scorer_through_the_mask_and_eval_renders_without_it(mask):
+    model, cameras = planted_floater_model(mask)
     model.train()
     model.paup.set_step(0)  # the statistics are due
     outputs = model.get_outputs(cameras[1])
-    assert bool(model.paup.has_statistics) and "uri_full" in outputs
+    assert bool(model.paup.has_statistics) and "uri_enhanced" in outputs
+    with torch.no_grad():  # the UWI is formed from the full I_UR, the one evaluation renders
+        plain = model.render(cameras[1], depth_weights=model.depth_weights())["radiance"]
+        keep = 1.0 - model.paup.scores()[1]
+        expected = model.render(cameras[1], keep=keep)["radiance"]
+    torch.testing.assert_close(outputs["uri"].detach(), plain)
+    if mask == "expected":  # deterministic: I_UR^Enh is the render with the opacities times 1 - m
+        torch.testing.assert_close(outputs["uri_enhanced"].detach(), expected)
     losses = model.get_loss_dict(outputs, {"camera": cameras[1], "image": torch.zeros(30, 40, 3)}, step=0)
     assert "paup_loss" in losses
+    # L_PAPSL trains the scorer alone: its gradient reaches no Gaussian parameter
+    gaussian_params = list(model.gaussians.parameters())
+    grads = torch.autograd.grad(losses["paup_loss"], gaussian_params, retain_graph=True, allow_unused=True)
+    assert all(g is None or not bool(g.any()) for g in grads)
     sum(losses.values()).backward()
     scorer = model.paup.scorer
     for name, param in [("w_u", scorer.raw_w_u), ("w_p", scorer.raw_w_p), *scorer.phi.named_parameters()]:
@@ -195,7 +207,7 @@ def test_gradients_reach_the_scorer_through_the_mask_and_eval_renders_without_it
     with torch.no_grad():
         first, second = model.get_outputs(cameras[1]), model.get_outputs(cameras[1])
         plain = model.render(cameras[1], depth_weights=model.depth_weights())
-    assert "uri_full" not in first
+    assert "uri_enhanced" not in first
     assert torch.equal(first["uri"], second["uri"]) and torch.equal(first["uri"], plain["radiance"])
 
 

@@ -69,6 +69,24 @@ def time_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], re
     return best
 
 
+def mean_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], steps: int,
+                        rounds: int) -> dict[str, float]:
+    """Mean ms per training step over `steps` consecutive steps of the run at `config`, each way on a fresh copy
+    of its latest checkpoint (so every way trains the same model through the same refreshes and densification
+    events); the ways alternate `rounds` times and each keeps its best mean."""
+    best = dict.fromkeys(ways, float("inf"))
+    for _ in range(rounds):
+        for name, install in ways.items():
+            with tempfile.TemporaryDirectory() as scratch:
+                step, trainer = training_step(config, Path(scratch))
+                install(trainer)
+                start = time.perf_counter()
+                for _ in range(steps):
+                    step()
+                best[name] = min(best[name], (time.perf_counter() - start) * 1000 / steps)
+    return best
+
+
 def compare_passes(title: str, passes: dict[str, Callable[[], tuple[Callable[[], None], list[Tensor]]]],
                    repeats: int) -> None:
     """Time each way's pass (a factory returning the pass and the list its last call fills with outputs and

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 from torch import Tensor, nn
@@ -43,8 +44,12 @@ class PAUPConfig(CheckedConfig):
     writes."""
     attenuation_weight: float = 1.0
     """Weight of P's attenuation term a_i (1 - exp(-beta_D d_i)) (the paper: 1; 0 keeps the depth term only)."""
+    mask: Literal["concrete", "expected"] = "concrete"
+    """The keep mask s_i on the opacities of I_UR^Enh: "concrete", a relaxed-Bernoulli draw s_i ~ 1 - m_i (the
+    paper's Gumbel-Softmax), or "expected", s_i = 1 - m_i (deterministic). Gradients reach phi, w_u and w_p
+    through either."""
     mask_temperature: float = 0.5
-    """Temperature of the relaxed-Bernoulli keep mask (lower: closer to hard 0/1 draws)."""
+    """Temperature of the "concrete" keep mask (lower: closer to hard 0/1 draws)."""
     loss_weight: float = 0.1
     """Weight of L_PAPSL = L1(I_UR, I_UR^Enh) + keep_penalty mean(1 - m) + mlp_penalty ||phi||^2."""
     keep_penalty: float = 0.01

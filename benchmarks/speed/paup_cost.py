@@ -1,0 +1,47 @@
+"""What the PAUP branch costs a training step: a `uw3dgs` run's steps with PAUP against the same steps without it.
+
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive \\
+      python benchmarks/speed/paup_cost.py RUN/config.yml [--steps 200] [--rounds 2]
+
+RUN is a `uw3dgs` run past PAUP's start (its checkpoint holds the statistics). Each way resumes a fresh copy of
+the run's latest checkpoint and trains `--steps` more steps, one thread; the mean time per step is what a run
+pays, so the window should span statistics refreshes (`--model.paup.every`) and densification events. "with
+PAUP" is the method as it trains; "without PAUP" removes the branch from the same model (no masked render, no
+second render, no statistics, no L_PAPSL, no pruning by m, plain depth: a `uw3dgs-no-paup` step). The ways
+alternate `--rounds` times; the best mean of each is kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import torch
+from timing import mean_training_steps  # the sibling benchmark script, next to this one
+
+
+def without_paup(trainer: Any) -> None:
+    """Take the PAUP branch out of a built trainer (what `use_paup=False` builds, on the same Gaussians)."""
+    trainer.model.paup = None
+    for callback in trainer.callbacks:
+        if hasattr(callback, "extra_pruning"):
+            callback.extra_pruning = None
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("config", type=Path, help="config.yml of a trained uw3dgs run (with a checkpoint)")
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--rounds", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    ways = {"without PAUP (uw3dgs-no-paup)": without_paup, "with PAUP (uw3dgs)": lambda trainer: None}
+    mean = mean_training_steps(args.config, ways, args.steps, args.rounds)
+    base = mean["without PAUP (uw3dgs-no-paup)"]
+    for name, ms in mean.items():
+        print(f"  {name:30s} {ms:8.1f} ms per step (mean of {args.steps})   {ms / base:.2f}x")
+
+
+if __name__ == "__main__":
+    main()
