@@ -12,7 +12,7 @@ from uw3dgs.cameras import Camera
 from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
-from uw3dgs.engine.callbacks import TrainingCallback
+from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
@@ -71,7 +71,7 @@ class GaussianSplattingModel(Model):
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
         strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
-        return [ShDegreeSchedule(self.gaussians), DensityControl(strategy, self.gaussians, optimizers)]
+        return [StepSchedule("sh_degree", self.gaussians), DensityControl(strategy, self.gaussians, optimizers)]
 
     def background(self, device: torch.device) -> Tensor:
         if self.config.background == "random" and self.training:
@@ -92,10 +92,11 @@ class GaussianSplattingModel(Model):
         Gaussian's share of the depth (the paper's (1 - U_i)): depth = sum_i w_i d_i z_i / sum_i w_i d_i, the
         unweighted depth where a covered pixel's weights sum to nothing. `frozen` renders the Gaussians detached:
         gradients reach `keep` and `depth_weights` only."""
-        means, scales, quats, opacities = self.gaussians.activated()
-        colors = self.gaussians.colors(camera.center)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen):
+            means, scales, quats, opacities = self.gaussians.activated()
+            colors = self.gaussians.colors(camera.center)
         if frozen:
-            means, scales, quats, opacities, colors = (t.detach() for t in (means, scales, quats, opacities, colors))
+            means = means.detach()  # the parameter itself: no_grad leaves it attached
         if keep is not None:
             opacities = opacities * keep
         if depth_weights is not None:  # the weighted depth composites as two more feature channels
@@ -193,18 +194,6 @@ class DensityControl(TrainingCallback):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         device = self.gaussians.means.device
         self.state = {name: value.clone().to(device) for name, value in state.items()}
-
-
-class ShDegreeSchedule(TrainingCallback):
-    """Raise the active SH degree every `sh_degree_interval` steps."""
-
-    name = "sh_degree"
-
-    def __init__(self, gaussians: GaussianField):
-        self.gaussians = gaussians
-
-    def before_step(self, step: int) -> None:
-        self.gaussians.set_step(step)
 
 
 def gaussian_optimizers(means_lr: float = 1.6e-4, means_lr_final: float = 1.6e-6, opacity_lr: float = 0.05,

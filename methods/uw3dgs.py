@@ -18,7 +18,7 @@ from uw3dgs.cameras import Camera
 from uw3dgs.config import Target, target
 from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
-from uw3dgs.engine.callbacks import TrainingCallback
+from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
@@ -28,7 +28,6 @@ from uw3dgs.methods.gaussian_splatting import (
     DensityControl,
     GaussianSplattingModel,
     GaussianSplattingModelConfig,
-    ShDegreeSchedule,
     gaussian_optimizers,
 )
 from uw3dgs.metrics.image import psnr, ssim
@@ -140,7 +139,7 @@ class UW3DGSModel(GaussianSplattingModel):
         if self.paup is None:
             return super().get_training_callbacks(optimizers, max_num_iterations)
         strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
-        return [ShDegreeSchedule(self.gaussians), PAUPSchedule(self.paup),
+        return [StepSchedule("sh_degree", self.gaussians), StepSchedule("paup", self.paup),
                 DensityControl(strategy, self.gaussians, optimizers, extra_pruning=self.paup)]
 
     def depth_weights(self) -> Tensor | None:
@@ -350,18 +349,6 @@ class UW3DGSModel(GaussianSplattingModel):
             pus, m = self.paup.scores()
         return {"paup/floater_probability": m, "paup/pus": pus, "paup/uncertainty": self.paup.uncertainty,
                 "paup/implausibility": self.paup.implausibility}
-
-
-class PAUPSchedule(TrainingCallback):
-    """Tells the PAUP branch the step (when it starts, when its statistics are due)."""
-
-    name = "paup"
-
-    def __init__(self, paup: PAUP):
-        self.paup = paup
-
-    def before_step(self, step: int) -> None:
-        self.paup.set_step(step)
 
 
 def uw3dgs_optimizers(paup: bool) -> dict[str, ParamGroupConfig]:

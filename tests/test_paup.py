@@ -284,3 +284,14 @@ def test_a_bad_paup_option_is_one_line_naming_it(tmp_path, capsys, flag, value, 
     out = capsys.readouterr().out
     assert exc.value.code == 2 and f"error: {flag} {message}" in out, out
     assert "Traceback" not in out and not (tmp_path / "out").exists()
+
+
+def test_an_unknown_mask_names_the_choices(tmp_path, capsys):
+    from uw3dgs.cli.train import entrypoint as uw_train
+
+    with pytest.raises(SystemExit) as exc:
+        uw_train(["uw3dgs", "--output-dir", str(tmp_path / "out"), "--model.paup.mask", "hard"])
+    captured = capsys.readouterr()
+    out = " ".join((captured.out + captured.err).replace("│", " ").split())
+    assert exc.value.code == 2 and "'--model.paup.mask'" in out and "('concrete', 'expected')" in out, out
+    assert not (tmp_path / "out").exists()

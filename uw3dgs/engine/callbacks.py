@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Protocol
 
 
 class TrainingCallback:
@@ -25,3 +25,19 @@ class TrainingCallback:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what `state_dict` returned."""
+
+
+class Stepped(Protocol):
+    def set_step(self, step: int) -> None: ...
+
+
+class StepSchedule(TrainingCallback):
+    """Tells a component whose behaviour follows the step (the SH degree, PAUP's start and refreshes) the step,
+    before each forward pass; `name` keys its (empty) state in checkpoints."""
+
+    def __init__(self, name: str, target: Stepped):
+        self.name = name
+        self.target = target
+
+    def before_step(self, step: int) -> None:
+        self.target.set_step(step)
