@@ -79,24 +79,27 @@ class GaussianSplattingModel(Model):
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
     def render(self, camera: Camera, keep: Tensor | None = None, depth_weights: Tensor | None = None,
-               frozen: bool = False) -> dict[str, Any]:
+               frozen: bool = False, colors: Tensor | None = None) -> dict[str, Any]:
         """Rasterize the Gaussians' view-dependent colours seen from `camera`, no background:
         'radiance' [H, W, 3] = sum_i w_i c_i; 'alpha' [H, W] coverage; 'depth' [H, W] expected camera-space z of
         the covered part (0 where uncovered); 'range' [H, W] the same along the ray from the camera centre
         (world units; the scene's far bound where uncovered: open water); 'means2d' [N, 2] pixel centres
         (their gradient is kept for density control while training); 'radii' [N] pixels, 0 = not visible;
         'weight_sum' [N] each Gaussian's blending weights summed over the image and 'pixel_count' [N] the pixels it
-        was blended into (no gradient).
+        was blended into (no gradient); 'colors' [N, 3] the view-dependent colours it rendered.
 
         `keep` [N] in [0, 1] scales the opacities (PAUP's relaxed keep mask). `depth_weights` [N] >= 0 weight each
         Gaussian's share of the depth (the paper's (1 - U_i)): depth = sum_i w_i d_i z_i / sum_i w_i d_i, the
         unweighted depth where a covered pixel's weights sum to nothing. `frozen` renders the Gaussians detached:
-        gradients reach `keep` and `depth_weights` only."""
+        gradients reach `keep` and `depth_weights` only. `colors` [N, 3]: the colours seen from `camera` when the
+        caller has them (a second render of the same view), else computed."""
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen):
             means, scales, quats, opacities = self.gaussians.activated()
-            colors = self.gaussians.colors(camera.center)
+            if colors is None:
+                colors = self.gaussians.colors(camera.center)
         if frozen:
-            means = means.detach()  # the parameter itself: no_grad leaves it attached
+            means, colors = means.detach(), colors.detach()  # parameters or given: no_grad leaves them attached
+        rendered = colors
         if keep is not None:
             opacities = opacities * keep
         if depth_weights is not None:  # the weighted depth composites as two more feature channels
@@ -114,7 +117,7 @@ class GaussianSplattingModel(Model):
         ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
         return {"radiance": radiance, "alpha": out.alpha, "depth": depth, "range": ranges,
                 "means2d": out.means2d, "radii": out.radii, "weight_sum": out.weight_sum,
-                "pixel_count": out.pixel_count}
+                "pixel_count": out.pixel_count, "colors": rendered}
 
     def over_background(self, radiance: Tensor, alpha: Tensor) -> Tensor:
         """`radiance` [H, W, 3] composited over the background colour where `alpha` [H, W] leaves it visible."""

@@ -182,7 +182,7 @@ class UW3DGSModel(GaussianSplattingModel):
         c = self.config.paup
         keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
         outputs = self.render(camera, depth_weights=depth_weights)
-        outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True)["radiance"]
+        outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True, colors=outputs["colors"])["radiance"]
         outputs.update(pus=pus, floater_probability=m)
         return outputs
 
@@ -203,7 +203,7 @@ class UW3DGSModel(GaussianSplattingModel):
         views = []
         for view in self.nearest_train_cameras(camera, c.num_views):
             out = self.render(view, depth_weights=weights)
-            views.append(observe_view(out["weight_sum"], out["pixel_count"], self.gaussians.colors(view.center),
+            views.append(observe_view(out["weight_sum"], out["pixel_count"], out["colors"],
                                       out["means2d"], out["radii"], (means - view.center).norm(dim=-1),
                                       out["range"], out["alpha"], opacities, beta_d, self.dataset_scale,
                                       COVERAGE_EPS, c.attenuation_weight))

@@ -107,6 +107,30 @@ def test_no_grad_forward_equals_recording_forward() -> None:
         assert torch.equal(getattr(plain, name), getattr(recorded, name)), name
 
 
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["f64", "f32"])
+def test_opacity_only_backward_equals_full(dtype: torch.dtype) -> None:
+    """With only the opacities requiring a gradient (PAUP's frozen render), the backward skips the rest; the
+    opacities' gradient is the full backward's, bit for bit, and the reference's."""
+    scene = random_scene(6, 3000, 96, 80)
+    cam = Camera(scene.camera.viewmat.to(dtype), scene.camera.K.to(dtype), scene.camera.width, scene.camera.height)
+    weights = torch.randn(80, 96, 3, dtype=dtype, generator=torch.Generator().manual_seed(3))
+
+    def opacity_grad(backend, geometry: bool) -> Tensor:
+        inputs = [t.to(dtype) for t in scene.inputs()]
+        opacities = inputs[3].requires_grad_(True)
+        if geometry:
+            inputs[0].requires_grad_(True)
+        out = backend(*inputs, cam.viewmat, cam.K, cam.width, cam.height, RasterSettings())
+        (out.render * weights).sum().backward()
+        return opacities.grad
+
+    alone = opacity_grad(cpu_backend.rasterize_cpu, geometry=False)
+    assert alone.abs().sum() > 0
+    assert torch.equal(alone, opacity_grad(cpu_backend.rasterize_cpu, geometry=True))
+    tol = 1e-10 if dtype == F64 else 1e-4
+    torch.testing.assert_close(alone, opacity_grad(rasterize_reference, geometry=False), rtol=tol, atol=tol)
+
+
 def test_means2d_grad_and_empty_scene() -> None:
     scene = random_scene(9, 50)
     leaves = [t.float().requires_grad_(True) for t in scene.inputs()]

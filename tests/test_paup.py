@@ -80,6 +80,15 @@ def test_a_gaussian_no_view_holds_is_not_measured_and_scores_neutral():
     assert normalized.implausibility.tolist() == pytest.approx([1 / 3, 2 / 3, 2])
 
 
+def test_depth_weights_read_u_as_measured_not_normalised():
+    """(1 - U) with U the measured variance (in [0, 0.25]): unit-mean U would give the Gaussian above the mean a
+    weight of 0. Unmeasured Gaussians get the measured ones' median."""
+    paup = PAUP(PAUPConfig(), num_gaussians=4)
+    paup.update(torch.tensor([0.01, 0.02, 0.06, 5.0]), torch.ones(4), torch.tensor([True, True, True, False]))
+    assert paup.uncertainty[2] == pytest.approx(2.0)  # the score's unit-mean U
+    assert paup.depth_weights().tolist() == pytest.approx([0.99, 0.98, 0.94, 0.98])
+
+
 def test_phi_starts_rising_with_the_score_at_its_stated_midpoint():
     scorer = FloaterScorer(hidden_units=32, init_weight=0.5, init_score=4.0, init_sharpness=2.0)
     pus = torch.tensor([0.0, 1.0, 4.0, 6.0])
@@ -171,6 +180,7 @@ def test_statistics_follow_densification():
     paup.update(torch.tensor([0.1, 0.2, 0.3]), torch.tensor([1.0, 2.0, 3.0]), torch.ones(3, dtype=torch.bool))
     paup.reindex(torch.tensor([0, 2, -1, -1]))  # 1 removed, two new ones
     assert paup.uncertainty.tolist() == pytest.approx([0.1, 0.3, 0.0, 0.0])
+    assert paup.raw_uncertainty.tolist() == pytest.approx([0.1, 0.3, 0.0, 0.0])
     assert paup.measured.tolist() == [True, True, False, False]
     assert int(paup.created_total) == 5
     assert paup.select(step=0) is None or not bool(paup.select(step=0)[2:].any())  # never the unmeasured ones

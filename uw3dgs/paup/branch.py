@@ -13,7 +13,7 @@ from torch import Tensor, nn
 from uw3dgs.options import CheckedConfig, check_number
 from uw3dgs.paup.scorer import FloaterScorer
 
-PER_GAUSSIAN_BUFFERS = ("uncertainty", "implausibility", "measured")
+PER_GAUSSIAN_BUFFERS = ("uncertainty", "implausibility", "raw_uncertainty", "measured")
 
 
 @dataclass(frozen=True)
@@ -94,6 +94,9 @@ class PAUP(nn.Module):
                                     config.init_sharpness)
         self.register_buffer("uncertainty", torch.zeros(num_gaussians))
         self.register_buffer("implausibility", torch.zeros(num_gaussians))
+        self.register_buffer("raw_uncertainty", torch.zeros(num_gaussians))
+        """U as measured (not normalised): the (1 - U) depth weights read it, a weight in [0.75, 1] as the paper
+        defines U (variances of values in [0, 1]); the unit-mean U would zero the weight of half the Gaussians."""
         self.register_buffer("measured", torch.zeros(num_gaussians, dtype=torch.bool))
         self.register_buffer("pruned_total", torch.tensor(0, dtype=torch.long))
         """Gaussians removed by PAUP over the run."""
@@ -101,9 +104,9 @@ class PAUP(nn.Module):
         """Gaussians that ever existed in the run (initial ones + all densification created)."""
         self.register_buffer("last_pruned", torch.tensor(0, dtype=torch.long))
         self.step = 0
-        self._filled: tuple[Tensor, Tensor, bool] | None = None
-        """(U, P with neutral values, any measured): read several times a step, so kept until the statistics
-        change (`update`, `reindex`, loading, a device move)."""
+        self._filled: tuple[Tensor, Tensor, Tensor, bool] | None = None
+        """(U, P, raw U with neutral values, any measured): read several times a step, so kept until the
+        statistics change (`update`, `reindex`, loading, a device move)."""
 
     # -- schedule --
 
@@ -120,7 +123,7 @@ class PAUP(nn.Module):
 
     @property
     def has_statistics(self) -> bool:
-        return self._filled_statistics()[2]
+        return self._filled_statistics()[3]
 
     # -- statistics and scores --
 
@@ -128,6 +131,7 @@ class PAUP(nn.Module):
         """Store a refresh's U, P [N] for the Gaussians it measured (`measured` [N] bool), in units of their mean
         over those with `normalize_scores`; the others keep what they had."""
         self._filled = None
+        self.raw_uncertainty[measured] = uncertainty[measured].to(self.raw_uncertainty.dtype)
         if self.config.normalize_scores and bool(measured.any()):
             uncertainty = uncertainty / uncertainty[measured].mean().clamp_min(1e-12)
             implausibility = implausibility / implausibility[measured].mean().clamp_min(1e-12)
@@ -139,13 +143,13 @@ class PAUP(nn.Module):
         """(U, P) [N] with the neutral values (medians over measured Gaussians) where unmeasured."""
         return self._filled_statistics()[:2]
 
-    def _filled_statistics(self) -> tuple[Tensor, Tensor, bool]:
+    def _filled_statistics(self) -> tuple[Tensor, Tensor, Tensor, bool]:
         if self._filled is None:
-            u, p, known = self.uncertainty, self.implausibility, self.measured
+            values, known = (self.uncertainty, self.implausibility, self.raw_uncertainty), self.measured
             any_known = bool(known.any())
             if any_known and not bool(known.all()):
-                u, p = torch.where(known, u, u[known].median()), torch.where(known, p, p[known].median())
-            self._filled = (u, p, any_known)
+                values = tuple(torch.where(known, v, v[known].median()) for v in values)
+            self._filled = (*values, any_known)
         return self._filled
 
     def scores(self) -> tuple[Tensor, Tensor]:
@@ -155,8 +159,9 @@ class PAUP(nn.Module):
         return pus, self.scorer(pus)
 
     def depth_weights(self) -> Tensor:
-        """(1 - U) [N] clamped to [0, 1]: each Gaussian's weight in the composited depth."""
-        return (1.0 - self.filled()[0]).clamp(0.0, 1.0)
+        """(1 - U) [N] clamped to [0, 1], U as measured (never normalised; the median of the measured ones where
+        unmeasured): each Gaussian's weight in the composited depth and in L_z."""
+        return (1.0 - self._filled_statistics()[2]).clamp(0.0, 1.0)
 
     def loss(self, uri: Tensor, uri_enhanced: Tensor, floater_probability: Tensor) -> Tensor:
         """Weighted L_PAPSL (scalar): L1(I_UR, I_UR^Enh) + lambda_s mean_i(1 - m_i) + lambda_w ||phi||^2."""

@@ -172,11 +172,15 @@ class _Composite(torch.autograd.Function):
         means2d, conics, opacities, feats, *state = ctx.saved_tensors
         width, height, settings = ctx.view
         empty = means2d.new_empty(0)  # stands for a zero gradient: unused outputs cost nothing
+        # frozen Gaussians (PAUP's masked render) need the opacities' gradient only: about half the work
+        geometry = any(ctx.needs_input_grad[i] for i in (0, 1, 3))
         g_means2d, g_conics, g_opacities, g_feats = _state["module"].composite_backward(
             means2d, conics, opacities, feats, width, height, settings.tile_size,
             settings.alpha_max, state,
-            *(empty if g is None else g.contiguous() for g in (grad_render, grad_depth, grad_alpha)),
+            *(empty if g is None else g.contiguous() for g in (grad_render, grad_depth, grad_alpha)), geometry,
         )  # fmt: skip
+        if not geometry:
+            g_means2d = g_conics = g_feats = None
         return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None
 
 
@@ -202,8 +206,10 @@ def rasterize_cpu(
     )
     viewmat = viewmat.detach().to(dtype).contiguous()
     K = K.detach().to(dtype).contiguous()
-    means2d, conics, depths, radii = _Project.apply(means, quats, scales, opacities, viewmat, K, width, height,
-                                                    settings)  # fmt: skip
+    # the projection reads the opacities for the radii only (no gradient): detached, a render whose Gaussians are
+    # frozen but whose opacities carry one (PAUP's masked render) runs no projection backward
+    means2d, conics, depths, radii = _Project.apply(means, quats, scales, opacities.detach(), viewmat, K, width,
+                                                    height, settings)  # fmt: skip
     feats = torch.cat([features, depths[:, None]], dim=1)  # depth composites like a feature
     # Separate render / depth / alpha outputs: no slicing, so no zero-fill + copy ops in the backward.
     render, depth, alpha, weight_sum, pixel_count = _Composite.apply(

@@ -839,7 +839,9 @@ void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const tor
     for (auto& b : bufs) trace->codes.push_back(b.release());
 }
 
-template <typename T, int NF>
+// kAll: gradients of means2d, conics, opacities and features; false: of the opacities only (the rest of the
+// slot row is zero), which skips the moment and per-channel sums (a render whose Gaussians are frozen).
+template <typename T, int NF, bool kAll>
 void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRec<T>* recs,
                              const torch::Tensor& feats, int64_t width, int64_t height, double alpha_max_d,
                              const torch::Tensor& final_t, const torch::Tensor& grad_render,
@@ -947,25 +949,32 @@ void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRe
           V G = wg - s * alpha / transmit;
           vstore(&S[p], V(m ? s + wg : s));
           G = (m & (alpha < alpha_max)) ? G : V{};
-          const V Gdx = G * dx;
-          const V Gdy = G * dy;
           m0 += G;
-          m1 += Gdx;
-          m2 += Gdy;
-          m3 += Gdx * dx;
-          m4 += Gdx * dy;
-          m5 += Gdy * dy;
-          for (int64_t ch = 0; ch < F; ++ch) gf[ch] += m ? wgt * vload<V>(&go[ch * plane + p]) : V{};
+          if constexpr (kAll) {
+            const V Gdx = G * dx;
+            const V Gdy = G * dy;
+            m1 += Gdx;
+            m2 += Gdy;
+            m3 += Gdx * dx;
+            m4 += Gdx * dy;
+            m5 += Gdy * dy;
+            for (int64_t ch = 0; ch < F; ++ch) gf[ch] += m ? wgt * vload<V>(&go[ch * plane + p]) : V{};
+          }
         }
         end -= n_codes;
-        const T s1 = hsum<T>(m1), s2 = hsum<T>(m2);
-        out[0] = g.a * s1 + g.b * s2;
-        out[1] = g.b * s1 + g.c * s2;
-        out[2] = static_cast<T>(-0.5) * hsum<T>(m3);
-        out[3] = -hsum<T>(m4);
-        out[4] = static_cast<T>(-0.5) * hsum<T>(m5);
         out[5] = hsum<T>(m0) / std::max(g.op, tiny);
-        for (int64_t ch = 0; ch < F; ++ch) out[6 + ch] = hsum<T>(gf[ch]);
+        if constexpr (kAll) {
+          const T s1 = hsum<T>(m1), s2 = hsum<T>(m2);
+          out[0] = g.a * s1 + g.b * s2;
+          out[1] = g.b * s1 + g.c * s2;
+          out[2] = static_cast<T>(-0.5) * hsum<T>(m3);
+          out[3] = -hsum<T>(m4);
+          out[4] = static_cast<T>(-0.5) * hsum<T>(m5);
+          for (int64_t ch = 0; ch < F; ++ch) out[6 + ch] = hsum<T>(gf[ch]);
+        } else {
+          std::fill(out, out + 5, static_cast<T>(0));
+          std::fill(out + 6, out + R, static_cast<T>(0));
+        }
       }
     }
   }
@@ -1066,6 +1075,7 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                                                             for_backward ? &trace : nullptr);
     };
     if (F == 4) run(std::integral_constant<int, 4>());
+    else if (F == 6) run(std::integral_constant<int, 6>());
     else if (F == 2) run(std::integral_constant<int, 2>());
     else run(std::integral_constant<int, 0>());
     reduce_slots<scalar_t>(bins.gauss_starts, slot_weight, weight_sum);
@@ -1081,12 +1091,13 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
   return out;
 }
 
-// Takes composite_forward's state; returns grad means2d [N, 2], conics [N, 3], opacities [N], feats [N, F].
+// Takes composite_forward's state; returns grad means2d [N, 2], conics [N, 3], opacities [N], feats [N, F]
+// (all_inputs false: only the opacities' gradient is computed, the others are zeros).
 std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                               torch::Tensor feats, int64_t width, int64_t height, int64_t tile_size,
                                               double alpha_max, std::vector<torch::Tensor> state,
                                               torch::Tensor grad_render, torch::Tensor grad_depth,
-                                              torch::Tensor grad_alpha) {
+                                              torch::Tensor grad_alpha, bool all_inputs) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &grad_render, &grad_depth, &grad_alpha})
     check_cpu(*p, "input");
   TORCH_CHECK(state.size() >= 8, "composite_backward: incomplete forward state");
@@ -1110,14 +1121,19 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
   auto grads = torch::empty({n, 6 + F}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
     auto slot_grad = torch::empty({bins.sorted_gauss.size(0), 6 + F}, opts);
-    auto run = [&](auto nf) {
-      composite_backward_impl<scalar_t, decltype(nf)::value>(bins, trace, records_of<scalar_t>(recs), feats, width,
-                                                             height, alpha_max, final_t, grad_render, grad_depth,
-                                                             grad_alpha, slot_grad);
+    auto run = [&](auto nf, auto all) {
+      composite_backward_impl<scalar_t, decltype(nf)::value, decltype(all)::value>(
+          bins, trace, records_of<scalar_t>(recs), feats, width, height, alpha_max, final_t, grad_render, grad_depth,
+          grad_alpha, slot_grad);
     };
-    if (F == 4) run(std::integral_constant<int, 4>());
-    else if (F == 2) run(std::integral_constant<int, 2>());
-    else run(std::integral_constant<int, 0>());
+    auto run_all = [&](auto nf) {
+      if (all_inputs) run(nf, std::true_type());
+      else run(nf, std::false_type());
+    };
+    if (F == 4) run_all(std::integral_constant<int, 4>());
+    else if (F == 6) run_all(std::integral_constant<int, 6>());
+    else if (F == 2) run_all(std::integral_constant<int, 2>());
+    else run_all(std::integral_constant<int, 0>());
     reduce_slots<scalar_t>(bins.gauss_starts, slot_grad, grads);
   });
   using torch::indexing::Slice;
