@@ -31,6 +31,7 @@ from uw3dgs.methods.gaussian_splatting import (
     gaussian_optimizers,
 )
 from uw3dgs.metrics.image import psnr, ssim
+from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.options import check_number
 from uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
@@ -292,6 +293,7 @@ class UW3DGSModel(GaussianSplattingModel):
             uri = outputs["uri"].detach().clamp(0, 1)
             metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
             metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
+            metrics.update(lpips_metrics(uri, batch["clean_image"], prefix="uri_"))
             if "covisible" in batch:
                 metrics["uri_psnr_covisible"] = float(psnr(uri, batch["clean_image"], batch["covisible"]))
         return metrics

