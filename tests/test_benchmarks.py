@@ -3,6 +3,7 @@ and invert the medium; the speed ones (benchmarks/speed/) compare implementation
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import importlib.util
 import sys
@@ -64,6 +65,34 @@ def test_unseen_pixels_agrees_with_uw_eval(uw3dgs_run):
         water = -10 * torch.log10((b_inf.clamp(0, 1) - batch["image"]).square().mean())
         assert float(row[10]) == pytest.approx(float(water), abs=0.01)
         assert row[7] in ("0.00", "-")
+
+
+def test_roc_auc_against_brute_force_with_ties():
+    script = load_script("paup_scores")
+    gen = torch.Generator().manual_seed(0)
+    scores = torch.randint(0, 6, (60,), generator=gen).float()  # many ties
+    positive = torch.rand(60, generator=gen) < 0.3
+    pairs = [(a, b) for a in scores[positive].tolist() for b in scores[~positive].tolist()]
+    by_hand = sum(1.0 if a > b else 0.5 if a == b else 0.0 for a, b in pairs) / len(pairs)
+    assert script.roc_auc(scores, positive) == pytest.approx(by_hand)
+    assert script.roc_auc(scores, torch.zeros(60, dtype=torch.bool)) is None
+
+
+def test_paup_scores_count_the_floaters_uw_eval_counts(uw3dgs_run):
+    script = load_script("paup_scores")
+    model, scene = copy.deepcopy(uw3dgs_run.model), uw3dgs_run.datamanager.scene
+    train = uw3dgs_run.datamanager.train_indices
+    with pytest.raises(SystemExit, match="no PAUP statistics"):
+        script.score_rows(model, scene, train)
+    model.refresh_paup_statistics(scene.cameras[train[0]])
+    rows = [cells(r) for r in script.score_rows(model, scene, train)]
+    names = ["big, floating (floater_ratio)", "big, floating, true surface (floater_ratio_gt)"]
+    assert [r[0] for r in rows][::2] == names
+    model.eval()
+    summary = model.get_eval_summary(scene)
+    assert int(rows[0][1]) / model.num_gaussians == pytest.approx(summary["floater_ratio"])
+    assert int(rows[2][1]) / model.num_gaussians == pytest.approx(summary["floater_ratio_gt"])
+    assert all(int(r[6]) <= int(r[1]) for r in rows)
 
 
 def test_uri_error_bands_cover_every_pixel_and_dehazing_inverts_formation(uw3dgs_run):

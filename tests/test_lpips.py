@@ -213,3 +213,10 @@ def test_missing_weights_name_the_install_command(monkeypatch, capsys):
         assert err.count("warning") == 1 and INSTALL_COMMAND in err
     finally:
         lpips_module._cached_network.cache_clear()
+
+
+def test_building_the_network_leaves_the_global_generator_alone():
+    """A training run evaluates with LPIPS: building its network must not change the run's random draws."""
+    state = torch.get_rng_state()
+    lpips_module.LPIPSNetwork("vgg")
+    assert torch.equal(torch.get_rng_state(), state)

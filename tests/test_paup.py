@@ -89,6 +89,25 @@ def test_depth_weights_read_u_as_measured_not_normalised():
     assert paup.depth_weights().tolist() == pytest.approx([0.99, 0.98, 0.94, 0.98])
 
 
+def test_the_monotone_phi_never_falls_as_the_score_rises_whatever_its_parameters():
+    pus = torch.linspace(0.0, 12.0, 200)
+    for monotone in (True, False):
+        scorer = FloaterScorer(hidden_units=32, init_weight=0.5, init_score=4.0, init_sharpness=2.0,
+                               monotone=monotone)
+        with torch.no_grad():  # what training might make of it: negative output weights among others
+            for param in scorer.phi.parameters():
+                param.add_(torch.randn(param.shape, generator=torch.Generator().manual_seed(1)))
+            scorer.phi[2].weight.fill_(-0.1)
+        steps = scorer(pus).diff()
+        if monotone:
+            assert bool((steps >= 0).all())
+        else:  # the paper's unconstrained phi can turn around
+            assert bool((steps < 0).any())
+    with torch.no_grad():  # the plain phi's penalty is that of its parameters
+        penalty, by_hand = scorer.weight_penalty(), sum(p.square().sum() for p in scorer.phi.parameters())
+    assert float(penalty) == pytest.approx(float(by_hand))
+
+
 def test_phi_starts_rising_with_the_score_at_its_stated_midpoint():
     scorer = FloaterScorer(hidden_units=32, init_weight=0.5, init_score=4.0, init_sharpness=2.0)
     pus = torch.tensor([0.0, 1.0, 4.0, 6.0])

@@ -66,9 +66,13 @@ def floater_ratio(max_scale: Tensor, floating_votes: Tensor, seen_votes: Tensor)
     n = len(max_scale)
     if n == 0:
         return None
+    return float(floaters(max_scale, floating_votes, seen_votes).sum()) / n
+
+
+def floaters(max_scale: Tensor, floating_votes: Tensor, seen_votes: Tensor) -> Tensor:
+    """[N] bool: the Gaussians `floater_ratio` counts (big and floating; arguments as there, N >= 1)."""
     big = max_scale > BIG_SCALE_FACTOR * max_scale.median()
-    floating = (seen_votes > 0) & (floating_votes >= VIEW_SHARE * seen_votes)
-    return float((big & floating).sum()) / n
+    return big & (seen_votes > 0) & (floating_votes >= VIEW_SHARE * seen_votes)
 
 
 def floater_votes(means: Tensor, cameras: Sequence[Camera], render: Callable[[Camera], Mapping[str, Any]],

@@ -184,7 +184,10 @@ class Backbone(nn.Module):
         convs, channels = [], 3
         for layer in layers:
             if isinstance(layer, Conv):
-                convs.append(nn.Conv2d(channels, layer.channels, layer.kernel, layer.stride, layer.padding))
+                # no random initialisation (the weights are loaded): building the network must not advance the
+                # global generator, or a training run that evaluates would depend on whether LPIPS was built before
+                convs.append(nn.utils.skip_init(nn.Conv2d, channels, layer.channels, layer.kernel, layer.stride,
+                                                layer.padding))
                 channels = layer.channels
         self.convs = nn.ModuleList(convs)
 

@@ -37,13 +37,18 @@ class PAUPConfig(CheckedConfig):
     that "higher PUS = more likely a floater" holds before it has learned anything)."""
     init_sharpness: float = 2.0
     """Starting slope: m = sigmoid(init_sharpness (PUS - init_floater_score))."""
+    monotone_scorer: bool = True
+    """phi non-decreasing in PUS (its weights through a softplus), so m ranks Gaussians as PUS does. False: phi
+    unconstrained, as the paper writes it; L_PAPSL then turns m against the floaters (docs/methods/uw3dgs.md)."""
     normalize_scores: bool = True
     """Express U and P in units of their mean over the Gaussians a refresh measured, so w_u = w_p = 0.5 weighs
     them alike (raw U is ~1e-5 and raw P ~0.2 on the built-in scene; docs/methods/uw3dgs.md). Not the median:
     on a clean surface most U are ~0 and the median unit would blow noise up. False: the raw sum the paper
     writes."""
-    attenuation_weight: float = 1.0
-    """Weight of P's attenuation term a_i (1 - exp(-beta_D d_i)) (the paper: 1; 0 keeps the depth term only)."""
+    attenuation_weight: float = 0.0
+    """Weight of P's attenuation term a_i (1 - exp(-beta_D d_i)): 0 keeps the depth term only (the default: the
+    attenuation term is largest for the far opaque seabed, and with it PUS ranks the floaters near chance; docs/
+    methods/uw3dgs.md, "Is m a floater score?"); the paper: 1."""
     mask: Literal["concrete", "expected"] = "concrete"
     """The keep mask s_i on the opacities of I_UR^Enh: "concrete", a relaxed-Bernoulli draw s_i ~ 1 - m_i (the
     paper's Gumbel-Softmax), or "expected", s_i = 1 - m_i (deterministic). Gradients reach phi, w_u and w_p
@@ -91,7 +96,7 @@ class PAUP(nn.Module):
         super().__init__()
         self.config = config
         self.scorer = FloaterScorer(config.hidden_units, config.init_score_weight, config.init_floater_score,
-                                    config.init_sharpness)
+                                    config.init_sharpness, config.monotone_scorer)
         self.register_buffer("uncertainty", torch.zeros(num_gaussians))
         self.register_buffer("implausibility", torch.zeros(num_gaussians))
         self.register_buffer("raw_uncertainty", torch.zeros(num_gaussians))
@@ -173,11 +178,19 @@ class PAUP(nn.Module):
 
     @torch.no_grad()
     def select(self, step: int) -> Tensor | None:
-        """The measured Gaussians whose m is at or above the prune quantile of m and above the minimum probability;
-        at most floor((1 - q) N) of them (the largest m first). None before PAUP starts."""
+        """`candidates()`, counted as pruned; None before PAUP starts."""
         self.last_pruned.zero_()
         if step < self.config.start or not self.has_statistics:
             return None
+        remove = self.candidates()
+        self.last_pruned.fill_(int(remove.sum()))
+        self.pruned_total += self.last_pruned
+        return remove
+
+    @torch.no_grad()
+    def candidates(self) -> Tensor:
+        """[N] bool: the measured Gaussians whose m is at or above the prune quantile of m and above the minimum
+        probability; at most floor((1 - q) N) of them (the largest m first). What an event would prune now."""
         m = self.scores()[1]
         n = len(m)
         rank = min(n, max(1, math.ceil(self.config.prune_quantile * n)))
@@ -188,8 +201,6 @@ class PAUP(nn.Module):
             top = torch.where(remove, m, torch.full_like(m, -1.0)).topk(limit).indices
             remove = torch.zeros_like(remove)
             remove[top] = True
-        self.last_pruned.fill_(int(remove.sum()))
-        self.pruned_total += self.last_pruned
         return remove
 
     @torch.no_grad()

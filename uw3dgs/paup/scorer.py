@@ -8,16 +8,26 @@ import math
 import torch
 from torch import Tensor, nn
 
+MONOTONE_FLOOR = 1e-4
+"""Starting weight of the monotone phi's output units that the plain phi starts at 0 (a softplus reaches 0 only
+in the limit)."""
+
 
 class FloaterScorer(nn.Module):
     """w_u, w_p (kept positive through a softplus: they weight L_beta, where a negative PUS would push beta away
-    from its prior) and phi, a 2-layer MLP (1 -> hidden -> 1, ReLU)."""
+    from its prior) and phi, a 2-layer MLP (1 -> hidden -> ReLU -> 1).
 
-    def __init__(self, hidden_units: int, init_weight: float, init_score: float, init_sharpness: float):
+    `monotone`: phi's weights pass through a softplus, so m never falls as PUS rises (the paper's reading of m:
+    a higher score, a likelier floater). Unconstrained, L_PAPSL teaches phi the opposite (docs/methods/uw3dgs.md,
+    "Is m a floater score?"): dropping a floater changes the training image, dropping a hidden Gaussian does not."""
+
+    def __init__(self, hidden_units: int, init_weight: float, init_score: float, init_sharpness: float,
+                 monotone: bool = False):
         super().__init__()
         raw = math.log(math.expm1(init_weight))  # softplus^-1
         self.raw_w_u = nn.Parameter(torch.tensor(raw))
         self.raw_w_p = nn.Parameter(torch.tensor(raw))
+        self.monotone = monotone
         # drawn from a copy of the global generator: adding the branch leaves every other random draw of the run
         # as it was (a run whose PAUP never starts is the no-paup run, bit for bit)
         with torch.random.fork_rng(devices=[]):
@@ -28,9 +38,12 @@ class FloaterScorer(nn.Module):
             hidden, out = self.phi[0], self.phi[2]
             hidden.weight.fill_(1.0)
             hidden.bias.copy_(-torch.linspace(0.0, 2.0 * init_score, hidden_units))
-            out.weight.zero_()
+            out.weight.fill_(MONOTONE_FLOOR if monotone else 0.0)
             out.weight[0, 0] = init_sharpness
             out.bias.fill_(-init_sharpness * init_score)
+            if monotone:  # the parameters hold softplus^-1 of the weights
+                hidden.weight.copy_(_softplus_inverse(hidden.weight))
+                out.weight.copy_(_softplus_inverse(out.weight))
 
     @property
     def w_u(self) -> Tensor:
@@ -40,17 +53,31 @@ class FloaterScorer(nn.Module):
     def w_p(self) -> Tensor:
         return nn.functional.softplus(self.raw_w_p)
 
+    def phi_weights(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """phi's (hidden weight [h, 1], hidden bias [h], output weight [1, h], output bias [1]) as applied."""
+        hidden, out = self.phi[0], self.phi[2]
+        w1, w2 = hidden.weight, out.weight
+        if self.monotone:
+            w1, w2 = nn.functional.softplus(w1), nn.functional.softplus(w2)
+        return w1, hidden.bias, w2, out.bias
+
     def score(self, uncertainty: Tensor, implausibility: Tensor) -> Tensor:
         """PUS [N] from U [N] and P [N]."""
         return self.w_u * uncertainty + self.w_p * implausibility
 
     def forward(self, pus: Tensor) -> Tensor:
         """m [N] in (0, 1), the probability that each Gaussian is a floater."""
-        return torch.sigmoid(self.phi(pus[:, None]))[:, 0]
+        w1, b1, w2, b2 = self.phi_weights()
+        hidden = torch.relu(nn.functional.linear(pus[:, None], w1, b1))
+        return torch.sigmoid(nn.functional.linear(hidden, w2, b2))[:, 0]
 
     def weight_penalty(self) -> Tensor:
-        """||phi||^2: the squared norm of all of phi's weights and biases."""
-        return sum(p.square().sum() for p in self.phi.parameters())
+        """||phi||^2: the squared norm of all of phi's weights (as applied) and biases."""
+        return sum(t.square().sum() for t in self.phi_weights())
+
+
+def _softplus_inverse(x: Tensor) -> Tensor:
+    return x + torch.log(-torch.expm1(-x))  # log(exp(x) - 1), stable for large x
 
 
 def relaxed_keep_mask(keep_probability: Tensor, temperature: float) -> Tensor:
