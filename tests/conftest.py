@@ -73,3 +73,15 @@ def train_until_killed(config: TrainConfig, monkeypatch, step: int) -> Trainer:
         trainer.train()
     monkeypatch.setattr(Trainer, "train_step", original)
     return trainer
+
+
+def run_command(entrypoint, argv: list[str], capsys) -> tuple[int, str, str]:
+    """A command's entrypoint called in process: its exit status (0 when it returns), stdout (where its error line
+    goes) and stderr (its messages)."""
+    code = 0
+    try:
+        entrypoint(argv)
+    except SystemExit as exit_:
+        code = int(exit_.code or 0)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err

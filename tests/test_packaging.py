@@ -48,6 +48,8 @@ def test_wheel_holds_only_the_uw3dgs_package(wheel):
     assert top == {"uw3dgs", f"{wheel.name.split('-')[0]}-{wheel.name.split('-')[1]}.dist-info"}
     for sub in ("methods", "datamanagers", "fields", "configs"):
         assert any(n.startswith(f"uw3dgs/{sub}/") for n in names), sub
+    for grid in ROOT.glob("configs/*.yaml"):
+        assert f"uw3dgs/configs/{grid.name}" in names
 
 
 def test_every_source_package_is_packaged():
@@ -67,6 +69,11 @@ def test_fresh_venv_lists_methods_without_generic_top_level_names(fresh_venv):
     probe = ("import importlib.util as u; "
              "print([m for m in ('methods', 'fields', 'datamanagers', 'configs') if u.find_spec(m)])")
     assert run([str(fresh_venv / "bin" / "python"), "-c", probe], cwd="/").stdout.strip() == "[]"
+
+
+def test_fresh_venv_runs_the_installed_demo_grid_by_name(fresh_venv, tmp_path):
+    out = run([str(fresh_venv / "bin" / "uw-bench"), "demo", "--dry-run"], cwd=tmp_path)
+    assert "2 cells in outputs/bench/demo: 2 new" in out.stderr and out.stdout.count("uw-train ") == 2
 
 
 def install_plugin(venv: Path, tmp_path: Path, module: str, source: str, group: str, entry: str) -> None:

@@ -3,7 +3,6 @@ true poses are known) becomes a COLMAP dataset that the `colmap` datamanager rea
 
 from __future__ import annotations
 
-import os
 import stat
 import sys
 from pathlib import Path
@@ -11,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from conftest import run_command
 from PIL import Image
 
 from uw3dgs.cli.process_data import entrypoint
@@ -43,13 +43,8 @@ def _true_centres(scene_dir: Path) -> dict[str, np.ndarray]:
 
 
 def _run(argv: list[str], capsys) -> tuple[int, str]:
-    code = 0
-    try:
-        entrypoint(argv)
-    except SystemExit as exit_:
-        code = int(exit_.code or 0)
-    out = capsys.readouterr()
-    return code, out.out + out.err
+    code, out, err = run_command(entrypoint, argv, capsys)
+    return code, out + err
 
 
 def test_photos_become_a_colmap_dataset(scene_dir, tmp_path, capsys):
@@ -120,15 +115,38 @@ def test_argument_errors(scene_dir, tmp_path, capsys):
 
 
 def test_video_without_ffmpeg_says_what_to_do(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("PATH", str(tmp_path))  # no ffmpeg there
+    import imageio_ffmpeg
+
+    def no_binary():  # as on a platform imageio-ffmpeg ships no binary for, with no ffmpeg installed
+        raise RuntimeError("No ffmpeg exe could be found")
+
+    monkeypatch.setattr(imageio_ffmpeg, "get_ffmpeg_exe", no_binary)
     code, text = _run(["--video", str(tmp_path / "dive.mp4"), "--every-n", "10", "--out", str(tmp_path / "o")],
                       capsys)
-    assert code == 2 and "needs the ffmpeg program" in text and "--images" in text
+    assert code == 2 and "no ffmpeg program found" in text and "-fps_mode vfr" in text and "--images" in text
+
+
+def test_video_frames_are_decoded_by_the_bundled_ffmpeg(tmp_path):
+    """A real H.264 video (written by uw-render's writer) decoded by imageio-ffmpeg's ffmpeg: frames 0, 5, 10 of
+    12, each recognised by its grey level."""
+    from uw3dgs.cli.process_data import extract_video_frames
+    from uw3dgs.utils.video import Mp4Writer
+
+    levels = [20 * k for k in range(12)]
+    with Mp4Writer(tmp_path / "dive.mp4", fps=30) as video:
+        for level in levels:
+            video.write(np.full((48, 64, 3), level, dtype=np.uint8))
+    names = extract_video_frames(tmp_path / "dive.mp4", 5, tmp_path / "frames")
+    assert names == ["frame_00001.png", "frame_00002.png", "frame_00003.png"]
+    for name, level in zip(names, levels[::5], strict=True):
+        pixels = np.asarray(Image.open(tmp_path / "frames" / name), dtype=np.float64)
+        assert pixels.shape == (48, 64, 3) and abs(pixels.mean() - level) < 3, (name, pixels.mean(), level)
 
 
 def test_video_frames_come_from_ffmpeg(scene_dir, tmp_path, capsys, monkeypatch):
-    """A stand-in ffmpeg (the real one is not installed here) that 'decodes' a list of image files, honouring
-    the select filter: checks the command line uw-process-data builds and the rest of the pipeline."""
+    """A stand-in ffmpeg (named by IMAGEIO_FFMPEG_EXE, which imageio-ffmpeg honours first) that 'decodes' a list
+    of image files, honouring the select filter: checks the command line uw-process-data builds and the rest of
+    the pipeline on the exact images (a real video's compression would blur them)."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
     fake = bin_dir / "ffmpeg"
@@ -137,12 +155,12 @@ import re, shutil, sys
 args = sys.argv[1:]
 frames = open(args[args.index("-i") + 1]).read().split()
 n = int(re.fullmatch(r"select=not\\(mod\\(n\\\\,(\\d+)\\)\\)", args[args.index("-vf") + 1]).group(1))
-assert args[args.index("-vsync") + 1] == "vfr"
+assert args[args.index("-fps_mode") + 1] == "vfr"
 for k, frame in enumerate(frames[::n]):
     shutil.copy(frame, args[-1] % (k + 1))
 """)
     fake.chmod(fake.stat().st_mode | stat.S_IXUSR)
-    monkeypatch.setenv("PATH", f"{bin_dir}{os.pathsep}{os.environ['PATH']}")
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", str(fake))
     video = tmp_path / "dive.mp4"
     video.write_text("\n".join(str(p) for p in sorted((scene_dir / "Images_wb").glob("*.png"))))
     out = tmp_path / "video"

@@ -2,14 +2,14 @@
 
     uw-process-data --images dive/photos --out data/my-reef
     uw-process-data --images dive/frames --out data/my-reef --every-n 10 --matcher sequential
-    uw-process-data --video dive.mp4 --every-n 10 --out data/my-reef       # needs the ffmpeg program on PATH
+    uw-process-data --video dive.mp4 --every-n 10 --out data/my-reef
 
 Writes OUT/images/ and OUT/sparse/0/ (undistorted PINHOLE cameras, by COLMAP's undistorter), which the
 `colmap` datamanager reads as it is: `uw-train uw3dgs --data OUT`. OUT/colmap/ keeps the feature database
-and the distorted model. Video is read with the `ffmpeg` program when it is installed (no Python video
-library is needed); otherwise extract frames yourself (`ffmpeg -i dive.mp4 frames/%05d.png`) and pass the
-folder with --images. The dataset is assembled beside OUT and renamed into place when complete: a failed or
-killed run leaves OUT as it was (empty), so the same command can simply be run again.
+and the distorted model. Video is decoded by the ffmpeg program that the imageio-ffmpeg package ships (a
+dependency of uw3dgs; IMAGEIO_FFMPEG_EXE names another, version 5.1 or later), so no system ffmpeg is needed.
+The dataset is assembled beside OUT and renamed into place when complete: a failed or killed run leaves OUT as
+it was (empty), so the same command can simply be run again.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from uw3dgs.data.sfm import FixedCamera, SfmError, list_images, quiet_colmap, ru
 from uw3dgs.utils.console import warn
 from uw3dgs.utils.images import image_size
 from uw3dgs.utils.io import atomic_folder
+from uw3dgs.utils.video import ffmpeg_executable
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,8 @@ class ProcessDataArgs:
 
     Structure from motion (pycolmap: SIFT on the CPU, matching, incremental mapping) poses the images; COLMAP's
     undistorter then writes OUT/images/ and OUT/sparse/0/ (PINHOLE), which `uw-train METHOD --data OUT` reads.
-    Video needs the ffmpeg program on PATH (no Python video library is used); without it, extract the frames
-    yourself (ffmpeg -i dive.mp4 frames/%05d.png) and pass the folder with --images. Self-calibration of a
+    Video is decoded by the ffmpeg program bundled with the imageio-ffmpeg package (no system ffmpeg needed);
+    frames extracted otherwise can be passed as a folder with --images. Self-calibration of a
     near-flat seabed can get the focal length wrong; if you know the intrinsics (a calibration in water),
     pass them with --camera-params: they are then kept fixed. See docs/uwbundle.md.
     """
@@ -55,7 +56,7 @@ class ProcessDataArgs:
     images: Path | None = None
     """Folder of photos or extracted video frames (PNG, JPEG, TIFF, BMP; subfolders too), used in name order."""
     video: Path | None = None
-    """A video file, instead of --images; read with the ffmpeg program, which must be on PATH."""
+    """A video file, instead of --images; decoded by the ffmpeg program bundled with imageio-ffmpeg."""
     every_n: int = 1
     """Keep every n-th frame of the video (or image of the sorted folder); 10 suits 30 fps footage."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
@@ -83,20 +84,21 @@ def check_out(out: Path) -> None:
 
 
 def extract_video_frames(video: Path, every_n: int, frames_dir: Path) -> list[str]:
-    """Every n-th frame of `video` as PNGs in frames_dir (via the ffmpeg program); returns their names."""
-    ffmpeg = shutil.which("ffmpeg")
-    if ffmpeg is None:
+    """Every n-th frame of `video` (frames 0, n, 2n, ...) as PNGs frame_00001.png, ... in frames_dir, decoded by
+    imageio-ffmpeg's ffmpeg program; returns their names."""
+    try:
+        ffmpeg = ffmpeg_executable()
+    except RuntimeError as err:
         raise ProcessDataError(
-            "--video needs the ffmpeg program on PATH (uw3dgs uses no Python video library); install it "
-            "(apt install ffmpeg, brew install ffmpeg, conda install ffmpeg) or extract the frames yourself: "
-            f"ffmpeg -i {video} -vf \"select=not(mod(n\\,{every_n}))\" -vsync vfr frames/%05d.png  and pass "
-            "--images frames"
-        )
+            f"--video: {err}; or extract the frames with any ffmpeg yourself: ffmpeg -i {video} -vf "
+            f"\"select=not(mod(n\\,{every_n}))\" -fps_mode vfr frames/%05d.png  and pass --images frames"
+        ) from err
     if not video.is_file():
         raise ProcessDataError(f"--video {video}: no such file")
     frames_dir.mkdir(parents=True, exist_ok=True)
+    # -fps_mode (ffmpeg 5.1 and later), not -vsync: the bundled ffmpeg (9.x) no longer accepts -vsync
     cmd = [ffmpeg, "-hide_banner", "-loglevel", "error", "-nostdin", "-i", str(video),
-           "-vf", f"select=not(mod(n\\,{every_n}))", "-vsync", "vfr", str(frames_dir / "frame_%05d.png")]
+           "-vf", f"select=not(mod(n\\,{every_n}))", "-fps_mode", "vfr", str(frames_dir / "frame_%05d.png")]
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0:
         raise ProcessDataError(f"ffmpeg could not read {video}: {result.stderr.strip() or result.returncode}")

@@ -1,9 +1,14 @@
-"""The rich progress bar of training: step, loss, PSNR, Gaussians, steps/s.
+"""The rich progress bar of training: step, loss, PSNR, Gaussians, steps/s; and RUN/status.json, the same progress
+for other processes (`uw-bench`'s grid view): `{"step", "max_steps", "steps_per_second", "time"}`, rewritten
+atomically at most every STATUS_SECONDS and when training stops.
 
 It draws on the shared console (`uw3dgs.utils.console.CONSOLE`, stderr), so the `info` / `warn` lines printed
 while it runs go above it instead of tearing it."""
 
 from __future__ import annotations
+
+import time
+from pathlib import Path
 
 from rich.progress import (
     BarColumn,
@@ -15,13 +20,23 @@ from rich.progress import (
 )
 
 from uw3dgs.utils.console import CONSOLE
+from uw3dgs.utils.io import write_json
+
+STATUS_FILE = "status.json"
+STATUS_SECONDS = 2.0
+"""How often status.json is rewritten at most (a write is one small atomic file)."""
 
 
 class TrainingProgress:
     """Context manager; `update()` once per step. Disabled, it only keeps the speed estimate."""
 
-    def __init__(self, total: int, start: int, enabled: bool = True, smoothing: float = 0.9):
+    def __init__(self, total: int, start: int, enabled: bool = True, smoothing: float = 0.9,
+                 status_dir: Path | None = None):
         self.console = CONSOLE
+        self.total = total
+        self.step = start
+        self.status_path = None if status_dir is None else Path(status_dir) / STATUS_FILE
+        self._status_written = float("-inf")
         self.enabled = enabled
         self.smoothing = smoothing
         self.steps_per_second = 0.0
@@ -37,11 +52,22 @@ class TrainingProgress:
 
     def __exit__(self, *exc) -> None:
         self._progress.__exit__(*exc)
+        self._write_status(force=True)
+
+    def _write_status(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.status_path is None or (not force and now - self._status_written < STATUS_SECONDS):
+            return
+        self._status_written = now
+        write_json(self.status_path, {"step": self.step, "max_steps": self.total,
+                                      "steps_per_second": round(self.steps_per_second, 3), "time": time.time()})
 
     def update(self, step: int, loss: float, metrics: dict[str, float], step_seconds: float) -> None:
         rate = 1.0 / max(step_seconds, 1e-9)
         s = self.smoothing if self.steps_per_second else 0.0
         self.steps_per_second = s * self.steps_per_second + (1 - s) * rate
+        self.step = step
+        self._write_status()
         parts = [f"loss {loss:.4f}"]
         if "psnr" in metrics:
             parts.append(f"PSNR {metrics['psnr']:.2f}")

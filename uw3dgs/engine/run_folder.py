@@ -30,7 +30,7 @@ except ImportError:  # not on POSIX: runs are not locked
     fcntl = None
 
 LOCK_NAME = ".uw-train.lock"
-WRITTEN = {"config.yml", "dataparser_transforms.json"}
+WRITTEN = {"config.yml", "dataparser_transforms.json", "status.json"}
 """Files of the run folder itself the trainer writes (atomically); checkpoints/ holds only the trainer's files."""
 
 
@@ -107,11 +107,12 @@ def remove_stale_temp_files(run_dir: Path) -> list[Path]:
 # --resume: the checkpoint's parameters must fit the model the (new) options build
 
 
-def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+def flatten(data: Any, prefix: str = "") -> dict[str, Any]:
+    """A nested config dict as {'model.paup.every': value, ...}."""
     out: dict[str, Any] = {}
     if isinstance(data, dict):
         for key, value in data.items():
-            out.update(_flatten(value, f"{prefix}.{key}" if prefix else str(key)))
+            out.update(flatten(value, f"{prefix}.{key}" if prefix else str(key)))
     else:
         out[prefix] = data
     return out
@@ -120,7 +121,7 @@ def _flatten(data: Any, prefix: str = "") -> dict[str, Any]:
 def _changed_model_options(saved: dict[str, Any], new: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
     """Dotted keys under `model` (and the method) whose values differ: key -> (saved, new); a nested config whose
     class changed is one entry (its `_type`), not one per knob."""
-    a, b = _flatten(saved), _flatten(new)
+    a, b = flatten(saved), flatten(new)
     keys = [k for k in dict.fromkeys([*a, *b]) if (k == "method_name" or k.startswith("model."))
             and a.get(k, "<absent>") != b.get(k, "<absent>")]
     retyped = [k.removesuffix("._type") for k in keys if k.endswith("._type")]

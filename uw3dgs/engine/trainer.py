@@ -279,7 +279,7 @@ class Trainer:
                                  f"{last}: nothing left to train; raise --max-num-iterations, or evaluate with "
                                  f"uw-eval {self.run_dir / 'config.yml'}")
             with StopRequests() as stop, TrainingProgress(config.max_num_iterations, self.start_step,
-                                                          enabled=config.progress) as progress:
+                                                          enabled=config.progress, status_dir=self.run_dir) as progress:
                 self._segment_start = time.perf_counter()
                 try:
                     while step < last:

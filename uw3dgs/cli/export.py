@@ -1,0 +1,81 @@
+"""`uw-export RUN/config.yml --output scene.ply`: the trained Gaussians in the 3DGS PLY layout, in the dataset's own
+frame (the water-free scene other 3DGS viewers load), and the learned medium as `medium.json` beside it
+(docs/export.md)."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from uw3dgs.cli.errors import exit_with_error
+from uw3dgs.utils.console import info, route_warnings
+from uw3dgs.utils.io import describe_os_error
+
+
+@dataclass(frozen=True)
+class ExportArgs:
+    load_config: tyro.conf.Positional[Path]
+    """The run's config.yml."""
+    output: Path = Path("scene.ply")
+    """The PLY file to write."""
+    format: Literal["ply"] = "ply"
+    """The layout: ply (the 3DGS reference code's; docs/export.md)."""
+    medium_output: Path | None = None
+    """Where the learned medium goes (methods with a medium); default medium.json beside --output."""
+    medium_samples: int = 16
+    """Grid points per axis at which a grid medium's beta_D and beta_B are written."""
+    step: int | None = None
+    """Export the checkpoint of this step (one the run kept) instead of the latest."""
+
+
+def run_export(args: ExportArgs) -> tuple[Path, Path | None, int]:
+    """Write the PLY (and medium.json); returns (PLY path, medium path or None, Gaussians written)."""
+    from uw3dgs.engine.evaluator import load_trained
+    from uw3dgs.export.medium import medium_summary
+    from uw3dgs.export.ply import gaussian_rows, write_ply
+    from uw3dgs.utils.io import unwritable_reason, write_json
+
+    medium_path = args.medium_output or args.output.with_name("medium.json")
+    for option, path in (("--output", args.output), ("--medium-output", medium_path)):
+        problem = unwritable_reason(path)
+        if problem is not None:  # before the run is loaded
+            raise ValueError(f"{option} {path}: {problem}")
+    if args.medium_samples < 2:
+        raise ValueError(f"--medium-samples must be at least 2, got {args.medium_samples}")
+    _, datamanager, model, checkpoint = load_trained(args.load_config, "cpu", step=args.step)
+    gaussians = getattr(model, "gaussians", None)
+    if gaussians is None:
+        raise ValueError(f"{args.load_config}: the method's model has no Gaussians to export")
+    scene = datamanager.scene
+    rows = gaussian_rows(gaussians, scene.dataset_center, scene.dataset_scale)
+    write_ply(args.output, rows)
+    medium = getattr(model, "medium", None)
+    if medium is None:
+        return args.output, None, len(rows)
+    summary = medium_summary(medium, scene.dataset_center, scene.dataset_scale, args.medium_samples)
+    write_json(medium_path, {"checkpoint": str(checkpoint), **summary})
+    return args.output, medium_path, len(rows)
+
+
+def entrypoint(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    route_warnings()
+    args = tyro.cli(ExportArgs, args=argv, prog="uw-export",
+                    description="Export a trained run's Gaussians as a 3DGS PLY (dataset frame) and its medium as "
+                                "JSON.")
+    try:
+        ply, medium, count = run_export(args)
+    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+        exit_with_error(exc)
+    except OSError as exc:
+        exit_with_error(exc, message=describe_os_error(exc))
+    info(f"{count:,} Gaussians written to {ply}" + (f"; the medium to {medium}" if medium else
+                                                     " (the method has no medium: no medium.json)"))
+
+
+if __name__ == "__main__":
+    entrypoint()
