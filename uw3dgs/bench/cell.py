@@ -28,7 +28,7 @@ from uw3dgs.engine.run_folder import flatten, holds_a_run
 
 LOG_NAME = "bench.log"
 """The cell's uw-train and uw-eval output, appended run after run, in its run folder."""
-IGNORED_OPTIONS = {"timestamp", "load_config", "resume", "progress", "device"}
+IGNORED_OPTIONS = {"timestamp", "load_config", "resume", "progress", "device", "viewer", "viewer_port", "viewer_host"}
 """Options that may differ between the grid's command line and the run folder's config.yml of the same cell."""
 
 

@@ -51,8 +51,10 @@ class GridView:
             status = read_status(cell)
             if status is None or time.time() - float(status.get("time", 0)) > FRESH_SECONDS:
                 continue  # not started, or a status left by an earlier invocation
-            table.add_row(cell.name, f"{status.get('step', '?')}/{status.get('max_steps', '?')}",
-                          f"{status.get('steps_per_second', 0):.1f}")
+            step, last = status.get("step"), status.get("max_steps")
+            trained = step is not None and step == last
+            table.add_row(cell.name, "evaluating" if trained else f"{step}/{last}",
+                          "" if trained else f"{status.get('steps_per_second', 0):.1f}")
         return Group(self._bar, table) if table.row_count else Group(self._bar)
 
     def refresh(self) -> None:

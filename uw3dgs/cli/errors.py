@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import NoReturn
+from collections.abc import Callable
+from typing import NoReturn, TypeVar
 
 from rich.console import Console
 from rich.markup import escape
@@ -26,3 +27,21 @@ def exit_with_error(exc: BaseException, console: Console | None = None, hint: st
         text += f"\n{escape(hint)}"
     (console or Console()).print(text, soft_wrap=True)
     sys.exit(2)
+
+
+T = TypeVar("T")
+USER_ERRORS = (FileNotFoundError, ValueError, RuntimeError)
+"""What a command reports as one line: the message names the file or option and the fix."""
+
+
+def report_user_errors(work: Callable[[], T]) -> T:
+    """`work()`, with a user error (USER_ERRORS, or an OSError such as a full disk or a missing permission, named
+    with its path) reported by `exit_with_error`."""
+    from uw3dgs.utils.io import describe_os_error
+
+    try:
+        return work()
+    except USER_ERRORS as exc:
+        exit_with_error(exc)
+    except OSError as exc:
+        exit_with_error(exc, message=describe_os_error(exc))

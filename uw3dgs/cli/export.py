@@ -11,9 +11,8 @@ from typing import Literal
 
 import tyro
 
-from uw3dgs.cli.errors import exit_with_error
+from uw3dgs.cli.errors import report_user_errors
 from uw3dgs.utils.console import info, route_warnings
-from uw3dgs.utils.io import describe_os_error
 
 
 @dataclass(frozen=True)
@@ -67,12 +66,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
     args = tyro.cli(ExportArgs, args=argv, prog="uw-export",
                     description="Export a trained run's Gaussians as a 3DGS PLY (dataset frame) and its medium as "
                                 "JSON.")
-    try:
-        ply, medium, count = run_export(args)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        exit_with_error(exc)
-    except OSError as exc:
-        exit_with_error(exc, message=describe_os_error(exc))
+    ply, medium, count = report_user_errors(lambda: run_export(args))
     info(f"{count:,} Gaussians written to {ply}" + (f"; the medium to {medium}" if medium else
                                                      " (the method has no medium: no medium.json)"))
 

@@ -26,9 +26,9 @@ from rich.progress import track
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.cli.errors import exit_with_error
+from uw3dgs.cli.errors import report_user_errors
 from uw3dgs.utils.console import CONSOLE, info, route_warnings
-from uw3dgs.utils.io import atomic_file, describe_os_error, unwritable_reason
+from uw3dgs.utils.io import atomic_file, unwritable_reason
 
 PATHS = ("test", "train", "interpolate", "spiral")
 
@@ -258,11 +258,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
     route_warnings()
     args = tyro.cli(RenderArgs, args=argv, prog="uw-render", description=__doc__)
     try:
-        result = run_render(args)
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        exit_with_error(exc)
-    except OSError as exc:  # e.g. the disk filling up while the frames are written
-        exit_with_error(exc, message=describe_os_error(exc))
+        result = report_user_errors(lambda: run_render(args))  # OSError: e.g. the disk filling up
     except KeyboardInterrupt:
         Console().print("Interrupted.")
         sys.exit(130)

@@ -105,6 +105,11 @@ class Trainer:
         problem = unwritable_reason(Path(config.load_config).parent if resume_here else config.output_dir, folder=True)
         if problem is not None:  # before the data is read, which may take long
             raise RunFolderError(f"{'the run folder' if resume_here else '--output-dir'}: {problem}")
+        if config.viewer:  # a port in use is reported before the data is read too
+            from uw3dgs.viewer.server import check_port, require_viser
+
+            require_viser()
+            check_port(config.viewer_host, config.viewer_port, "--viewer-port")
         torch.manual_seed(config.seed)
         self.datamanager: DataManager = config.datamanager.setup(
             data=config.data, downscale_factor=config.downscale_factor, device=self.device, seed=config.seed)
@@ -157,8 +162,9 @@ class Trainer:
         if checkpoint is not None:
             self._restore(checkpoint)
         # --resume and --load-config say how this invocation started, not what the run is: the saved config starts a
-        # new run (and never points a later --resume at another folder)
-        save_config(dataclasses.replace(config, resume=False, load_config=None), self.run_dir / "config.yml")
+        # new run (and never points a later --resume at another folder); --viewer is how it is watched, not the run
+        save_config(dataclasses.replace(config, resume=False, load_config=None, viewer=False),
+                    self.run_dir / "config.yml")
         scene = self.datamanager.scene
         write_json(self.run_dir / "dataparser_transforms.json",
                    {"dataset_center": list(scene.dataset_center), "dataset_scale": scene.dataset_scale,
@@ -273,6 +279,7 @@ class Trainer:
         last = config.max_num_iterations
         step = self.start_step
         self.model.train()
+        viewer = None
         try:
             if step >= last:  # a resumed run that is already done: not "Done" with nothing trained
                 raise ValueError(f"--resume: {self._resumed_from} is at step {step} and --max-num-iterations is "
@@ -280,6 +287,7 @@ class Trainer:
                                  f"uw-eval {self.run_dir / 'config.yml'}")
             with StopRequests() as stop, TrainingProgress(config.max_num_iterations, self.start_step,
                                                           enabled=config.progress, status_dir=self.run_dir) as progress:
+                viewer = self._start_viewer(progress.console)
                 self._segment_start = time.perf_counter()
                 try:
                     while step < last:
@@ -291,6 +299,8 @@ class Trainer:
                         progress.update(step, float(losses["loss"]), metrics, time.perf_counter() - t0)
                         self._log(step, losses, metrics, progress.steps_per_second)
                         self._periodic(step, last)
+                        if viewer is not None:  # no gradient, no RNG draw, no state change: same numbers
+                            viewer.update(step)
                         if stop.signum is not None and step < last:
                             self._stop(step, stop.signum, progress.console)
                 except KeyboardInterrupt:
@@ -300,9 +310,24 @@ class Trainer:
                                            soft_wrap=True)
                     raise
         finally:
+            if viewer is not None:
+                viewer.stop()
             self.writer.close()
             self.close()
         return self.run_dir
+
+    def _start_viewer(self, console: Any) -> Any:
+        """With --viewer, the live viewer (uw3dgs/viewer/), else None."""
+        if not self.config.viewer:
+            return None
+        from uw3dgs.viewer.server import Viewer, views_from_datamanager
+
+        config = self.config
+        viewer = Viewer(self.model, views_from_datamanager(self.datamanager), host=config.viewer_host,
+                        port=config.viewer_port, live=True, port_option="--viewer-port",
+                        title=f"{self.datamanager.scene_name} / {config.method_name} (training)")
+        console.print(f"viewer at {viewer.url}", soft_wrap=True, highlight=False)
+        return viewer
 
     def _stop(self, step: int, signum: int, console: Any) -> None:
         """After a complete step: its checkpoint (unless `_periodic` just wrote it), how to resume, then stop."""
