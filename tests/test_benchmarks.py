@@ -234,3 +234,26 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
     assert [r.split("(")[0].strip() for r in rows] == ["without PAUP", "with PAUP"]
     assert rows[0].rstrip().endswith("1.00x")
+
+
+def test_viewer_slowdown_runs_every_setting(tmp_path, cache_dir, tiny_scene_config, monkeypatch, capsys,
+                                            keep_threads):
+    import json
+    import socket
+    from types import SimpleNamespace
+
+    spec = METHODS["uw3dgs"].config
+    base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=3)
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
+    tiny = dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers)
+    script = load_script("viewer_slowdown")
+    monkeypatch.setattr(script, "METHODS", {"uw3dgs": SimpleNamespace(config=tiny)})
+    with socket.socket() as s:  # a free port for the viewer
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(sys, "argv", ["viewer_slowdown", "--steps", "3", "--repeats", "1", "--port", str(port)])
+    script.main()
+    rows = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    assert [r["setting"] for r in rows] == ["off", "noclient", "simulated"]
+    assert rows[0]["frames"] == 0 and rows[1]["frames"] == 0 and rows[2]["frames"] >= 1
+    assert all(r["steps"] == 3 and r["steps_per_s"] > 0 for r in rows)
