@@ -127,6 +127,9 @@ def test_errors_name_the_cause_and_the_fix(make_config, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         uw_export([str(run / "config.yml"), "--output", str(tmp_path / "file" / "scene.ply")])
     assert exit_.value.code == 2 and "--output" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        uw_export([str(run / "config.yml"), "--output", str(tmp_path / "scene.ply"), "--medium-samples", "1"])
+    assert "--medium-samples must be at least 2, got 1" in capsys.readouterr().out
     for ckpt in (run / "checkpoints").iterdir():
         ckpt.unlink()
     with pytest.raises(SystemExit):

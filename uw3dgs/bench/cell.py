@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from uw3dgs.bench.grid import Cell
-from uw3dgs.engine.checkpoint import latest_checkpoint
+from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.results_table import RESULTS, read_results, stale_results
 from uw3dgs.engine.run_folder import flatten, holds_a_run
 
@@ -55,8 +55,6 @@ class Outcome:
     message: str = ""
     results: dict[str, Any] | None = None
     """uw-eval's JSON of the run."""
-    skipped: bool = False
-    """True where the cell was done before this invocation (nothing ran)."""
 
 
 def expected_config(cell: Cell) -> dict[str, Any]:
@@ -87,7 +85,8 @@ def config_differences(saved: dict[str, Any], expected: dict[str, Any]) -> list[
 
 
 def cell_state(cell: Cell, check_config: bool = True) -> tuple[State, str]:
-    """What is left to do for the cell, and why."""
+    """What is left to do for the cell, and why; `check_config`: compare the folder's config.yml with the cell's
+    options (a conflict where they differ)."""
     import yaml
 
     run = cell.run_dir
@@ -107,7 +106,7 @@ def cell_state(cell: Cell, check_config: bool = True) -> tuple[State, str]:
     checkpoint = latest_checkpoint(run)
     if checkpoint is None:
         return State.RESTART, "stopped before its first checkpoint"
-    step = int(checkpoint.stem.removeprefix("step-"))
+    step = checkpoint_step(checkpoint)
     last = int(flatten(saved).get("max_num_iterations", step))
     if step < last:
         return State.RESUME, f"at step {step} of {last}"
@@ -182,12 +181,13 @@ def _move_aside(run: Path) -> Path:
 
 
 def run_cell(cell: Cell, threads: int, python: str = sys.executable) -> Outcome:
-    """Train what is left of the cell and evaluate it, as child processes with `threads` threads each."""
-    state, why = cell_state(cell)
+    """Train what is left of the cell and evaluate it, as child processes with `threads` threads each. The driver
+    planned the cell (`cell_state` with its options checked against the folder), so they are not parsed again."""
+    state, why = cell_state(cell, check_config=False)
     if state is State.CONFLICT:
         return Outcome(cell, "conflict", why)
     if state is State.DONE:
-        return Outcome(cell, "done", why, read_results(cell.run_dir), skipped=True)
+        return Outcome(cell, "done", why, read_results(cell.run_dir))
     started = time.monotonic()
     log = cell.run_dir / LOG_NAME
     env = child_env(threads)

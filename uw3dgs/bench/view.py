@@ -23,12 +23,12 @@ FRESH_SECONDS = 60.0
 class GridView:
     """Context manager; `done(outcome)` for every finished cell, `refresh()` as often as the driver polls."""
 
-    def __init__(self, cells: Sequence[Cell], skipped: int):
+    def __init__(self, cells: Sequence[Cell]):
         self.cells = list(cells)
         self.finished: set[str] = set()
         self._bar = Progress(TextColumn("[bold blue]grid"), BarColumn(), MofNCompleteColumn(),
                              TextColumn("cells"), TimeElapsedColumn(), console=CONSOLE)
-        self._task = self._bar.add_task("grid", total=len(cells) + skipped, completed=skipped)
+        self._task = self._bar.add_task("grid", total=len(cells))
         self._live = Live(self._render(), console=CONSOLE, refresh_per_second=1, transient=False)
 
     def __enter__(self) -> GridView:

@@ -116,7 +116,7 @@ def run_bench(args: BenchArgs) -> int:
         for cell, (state, why) in zip(cells, states, strict=True):
             print(f"{cell.name}: {state.value} ({why})\n    uw-train {' '.join(cell.argv)}", flush=True)
         return 0
-    outcomes = [Outcome(cell, "done", why, read_results(cell.run_dir), skipped=True)
+    outcomes = [Outcome(cell, "done", why, read_results(cell.run_dir))
                 for cell, (state, why) in zip(cells, states, strict=True) if state is State.DONE]
     outcomes += [Outcome(cell, "conflict", why) for cell, (state, why) in zip(cells, states, strict=True)
                  if state is State.CONFLICT]
@@ -134,7 +134,7 @@ def run_bench(args: BenchArgs) -> int:
         else:
             threads = args.threads_per_job or 1
             info(f"sending {len(todo)} cell(s) to Ray, {threads} CPU(s) and {args.gpus_per_job} GPU(s) each")
-        with GridView(todo, skipped=0) as view:
+        with GridView(todo) as view:
             if args.executor == "local":
                 outcomes += run_local(todo, args.jobs, threads, view.done, view.refresh)
             else:

@@ -40,6 +40,14 @@ def checkpoint_path(run_dir: Path, step: int) -> Path:
     return run_dir / CHECKPOINT_DIR / f"step-{step:06d}.ckpt"
 
 
+def checkpoint_step(path: Path) -> int:
+    """The step of a checkpoint file named as `checkpoint_path` names it (step-NNNNNN.ckpt)."""
+    match = _NAME.match(Path(path).name)
+    if match is None:
+        raise ValueError(f"{path} is not a checkpoint name (step-NNNNNN.ckpt)")
+    return int(match.group(1))
+
+
 def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int) -> Path:
     """Write `state` for `step`; a run killed mid-write leaves the previous checkpoints intact."""
     path = checkpoint_path(run_dir, step)

@@ -13,6 +13,7 @@ from uw3dgs.config import load_config
 from uw3dgs.data.datamanager import DataManager
 from uw3dgs.engine.checkpoint import (
     checkpoint_path,
+    checkpoint_step,
     latest_checkpoint,
     list_checkpoints,
     load_checkpoint,
@@ -74,7 +75,7 @@ def load_trained(config_path: Path, device: torch.device | str = "cpu",
     run_dir = Path(config_path).parent
     checkpoint = latest_checkpoint(run_dir) if step is None else checkpoint_path(run_dir, step)
     if checkpoint is None or not checkpoint.is_file():
-        saved = ", ".join(str(int(p.stem.removeprefix("step-"))) for p in list_checkpoints(run_dir))
+        saved = ", ".join(str(checkpoint_step(p)) for p in list_checkpoints(run_dir))
         wanted = "no checkpoint" if step is None else f"no checkpoint of step {step} (saved: {saved or 'none'})"
         raise FileNotFoundError(f"{run_dir} holds {wanted} (checkpoints/step-*.ckpt); train it first, pick a saved "
                                 "step, or pass another run's config.yml (--steps-per-save and --keep-checkpoints "

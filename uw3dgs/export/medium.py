@@ -20,9 +20,8 @@ MEANING = ("Underwater image formation (Akkaynak-Treibitz, as UW-3DGS uses it): 
 @torch.no_grad()
 def medium_summary(medium: MediumField, dataset_center: tuple[float, float, float], dataset_scale: float,
                    samples: int) -> dict[str, Any]:
-    """The medium as a JSON-ready dict; a grid medium sampled at `samples` points per axis (>= 2)."""
-    if samples < 2:
-        raise ValueError(f"--medium-samples must be at least 2, got {samples}")
+    """The medium as a JSON-ready dict; a grid medium sampled at `samples` points per axis (>= 2, which the
+    command checks before loading the run)."""
     data: dict[str, Any] = {"b_inf": [float(v) for v in medium.b_inf.detach().cpu()], "meaning": MEANING}
     if not isinstance(medium, MediumGrid):  # the same everywhere
         beta_d, beta_b = medium.betas(medium.b_inf.new_zeros(1, 3))

@@ -66,8 +66,7 @@ def form_with_water(uri: Tensor, alpha: Tensor, ranges: Tensor, beta_d: Tensor, 
         raise ValueError(f"the water factor k must be >= 0, got {k}")
     if k == 0:
         return {"uwi": uri, "attenuation": torch.ones_like(uri), "backscatter": torch.zeros_like(uri)}
-    if k == 1:  # bit for bit the model's own image
-        return form_underwater_image(uri, alpha, ranges, beta_d, beta_b, b_inf, dataset_scale)
+    # k = 1 is the model's own image bit for bit: 1.0 * beta is beta exactly
     return form_underwater_image(uri, alpha, ranges, k * beta_d, k * beta_b, b_inf, dataset_scale)
 
 
