@@ -59,6 +59,10 @@ class MediumFieldConfig(InstantiateConfig):
     """'estimate' reads beta_B off the darkest observations of the points in this many range bins (Sea-thru)."""
     dark_share: float = 0.01
     """Share of each range bin's observations (the darkest) taken as backscatter alone (surfaces with J ~ 0)."""
+    estimate_residual: bool = False
+    """'estimate' fits Sea-thru's residual term for dark surfaces that are not black (fields/medium_estimate.py,
+    step 4), where it explains the backscatter samples better. Off by default until the medium-recovery benchmark
+    over scene kinds decides (docs/methods/uw3dgs.md, "Dark is not black")."""
     open_water_cells: int = 16
     """'estimate' reads B_inf off open water: image cells (this many across the width) that no initial point
     lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf to the dark observations with beta_B."""

@@ -12,6 +12,13 @@ as Sea-thru does (Akkaynak & Treibitz 2019):
    B_inf (1 - exp(-beta_B z)) alone. Without open water B_inf is fitted to them with beta_B.
 3. beta_D from all observations (`fit_attenuation`): how a point's colour changes with range, with each
    J_p solved in closed form for every candidate beta_D.
+4. Dark is not black (`fit_backscatter_residual`): real sand and rock reflect 8-12% at their darkest, and read
+   as backscatter such surfaces saturate it early (beta_B several times too high). Sea-thru's residual term
+   models them: dark(z) = B_inf (1 - exp(-beta_B z)) + J' exp(-beta_D z), J' >= 0 the darkest surfaces' own
+   signal, attenuated with the beta_D of step 3 (the same water). Steps 2-3 alternate with it; per channel it
+   is kept only where it explains the dark samples better by the Bayesian information criterion (one more
+   parameter), so black shadows keep the plain fit. Without open water its far end, where every colour
+   converges to the veiling light, gives B_inf.
 
 Why not one joint fit of everything: with J_p free, (B_inf, beta_B, J_p) trade off along a flat valley
 (a little less backscatter, a little brighter J_p), and a joint fit drifts to almost no backscatter
@@ -38,6 +45,28 @@ from uw3dgs.cameras import Camera
 
 
 @dataclass
+class MediumFit:
+    """A homogeneous medium fitted by `fit_medium`, with what the backscatter fit used."""
+
+    beta_d: Tensor
+    """[3] per dataset unit."""
+    beta_b: Tensor
+    """[3] per dataset unit."""
+    b_inf: Tensor
+    """[3]"""
+    residual: Tensor
+    """[3] J': the darkest surfaces' own signal at range 0 (0 where the plain fit was kept)."""
+    dark_z: Tensor
+    """[K] ranges (dataset units) of the backscatter samples (`dark_pixels`)."""
+    dark_color: Tensor
+    """[K, 3] their colours."""
+
+    @property
+    def medium(self) -> tuple[Tensor, Tensor, Tensor]:
+        return self.beta_d, self.beta_b, self.b_inf
+
+
+@dataclass
 class MediumEstimate:
     beta_d: Tensor
     """[3] per dataset unit."""
@@ -49,6 +78,10 @@ class MediumEstimate:
     """[P, 3] J_p of every input point, de-hazed with the fitted medium (see `estimate_medium`)."""
     fitted_points: int
     """Points with at least `min_views` observations (the only ones that constrain the medium)."""
+    fit: MediumFit | None = None
+    """The fit's details (None when the medium was given as `known`)."""
+    observations: tuple[Tensor, Tensor, Tensor] | None = None
+    """(point [M], colour [M, 3], range [M] in dataset units) of the fitted points: what the fit saw."""
 
 
 def _project(points: Tensor, cam: Camera) -> tuple[Tensor, Tensor, Tensor]:
@@ -115,7 +148,7 @@ def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
                     dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3, dark_bins: int = 10,
                     dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None,
-                    known: tuple[Tensor, Tensor, Tensor] | None = None) -> MediumEstimate:
+                    known: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = True) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
@@ -126,6 +159,7 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     water twice once the model adds it. `b_inf` [3], when given (read off open water by `open_water_color`),
     is kept; `dark_bins` and `dark_share` choose the backscatter samples (`dark_pixels`). `known` = (beta_D,
     beta_B, B_inf) skips the fit: the colours are de-hazed with that medium (the true one of a synthetic scene).
+    `residual` allows Sea-thru's residual term for dark surfaces that are not black (`fit_medium`).
     """
     points = points.float()
     idx, obs, ranges = observe_points(points, cameras, images)
@@ -134,13 +168,14 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
         raise ValueError(f"no initial point is seen by {min_views} or more training views, so the medium cannot be "
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
-    medium = fit_medium(local, obs[keep].float(), ranges[keep] * dataset_scale, b_inf, dark_bins, dark_share) \
-        if known is None else tuple(x.float() for x in known)
+    observations = (local, obs[keep].float(), ranges[keep] * dataset_scale)
+    fit = None if known is not None else fit_medium(*observations, b_inf, dark_bins, dark_share, residual=residual)
+    medium = tuple(x.float() for x in known) if fit is None else fit.medium
     seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed, local = torch.unique(idx, return_inverse=True)
     colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
-    return MediumEstimate(*medium, colors, len(fitted))
+    return MediumEstimate(*medium, colors, len(fitted), fit, observations)
 
 
 def clean_colors(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor,
@@ -245,10 +280,77 @@ def fit_attenuation(point: Tensor, color: Tensor, z: Tensor, beta_b: Tensor, b_i
     return torch.stack(beta_d)
 
 
+def backscatter_curve(z: Tensor, beta_b: Tensor, b_inf: Tensor, beta_d: Tensor | None = None,
+                      residual: Tensor | None = None) -> Tensor:
+    """Colours [K, 3] of the darkest surfaces at ranges z [K]: B_inf (1 - exp(-beta_B z)) + J' exp(-beta_D z)
+    (the residual term only when `beta_d` and `residual` [3] are given)."""
+    z = z[:, None]
+    curve = b_inf * (1 - torch.exp(-beta_b * z))
+    return curve if residual is None else curve + residual * torch.exp(-beta_d * z)
+
+
+def fit_backscatter_residual(z: Tensor, color: Tensor, beta_d: Tensor, b_inf: Tensor | None = None,
+                             steps: int = 300) -> tuple[Tensor, Tensor, Tensor]:
+    """Least-squares fit of B_inf (1 - exp(-beta_B z)) + J' exp(-beta_D z) to backscatter samples color [K, 3] at
+    ranges z [K], per channel, with beta_D [3] given: for each candidate beta_B the model is linear in (B_inf, J'),
+    solved in closed form (J' >= 0, B_inf in [0.001, 1]). `b_inf` [3] fixes the veiling light. Returns beta_B,
+    B_inf, J' [3]."""
+    z, color = z.double(), color.double()
+    betas = _beta_grid(z, steps)
+    beta_b, veil, residual = [], [], []
+    for c in range(3):
+        y, d = color[:, c], torch.exp(-beta_d[c].double() * z)
+
+        def solve(beta: Tensor, y: Tensor = y, d: Tensor = d, c: int = c) -> tuple[Tensor, Tensor, Tensor]:
+            """(B_inf, J', mean squared error) [G] for candidates beta [G]."""
+            a = 1 - torch.exp(-beta[:, None] * z)
+            saa, sad, say = (a * a).sum(-1), (a * d).sum(-1), (a * y).sum(-1)
+            sdd, sdy = (d * d).sum(), (d * y).sum()
+            if b_inf is None:
+                det = (saa * sdd - sad * sad).clamp_min(1e-300)
+                v = (say * sdd - sad * sdy) / det
+                v = torch.where((saa * sdy - sad * say) / det < 0, say / saa, v).clamp(1e-3, 1.0)
+            else:
+                v = b_inf[c].double().expand_as(beta)
+            r = ((sdy - v * sad) / sdd).clamp_min(0.0)
+            return v, r, (v[:, None] * a + r[:, None] * d - y).square().mean(-1)
+
+        best = _refined_argmin(lambda beta: solve(beta)[2], betas)
+        v, r, _ = solve(best[None])
+        beta_b.append(best)
+        veil.append(v[0])
+        residual.append(r[0])
+    return torch.stack(beta_b).float(), torch.stack(veil).float(), torch.stack(residual).float()
+
+
+def _bic(mse: Tensor, samples: int, parameters: int) -> Tensor:
+    """Bayesian information criterion of a least-squares fit with Gaussian errors (lower is better)."""
+    return samples * torch.log(mse.clamp_min(1e-12)) + parameters * math.log(samples)
+
+
 def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, bins: int = 10,
-               share: float = 0.01) -> tuple[Tensor, Tensor, Tensor]:
+               share: float = 0.01, residual: bool = True, rounds: int = 3, steps: int = 300,
+               max_observations: int = 50_000) -> MediumFit:
     """The homogeneous medium of observations color [M, 3] of points point [M] (0..P-1, every value present)
-    at ranges z [M] > 0: beta_B (and B_inf unless `b_inf` [3] is given) from the dark pixels, then beta_D.
-    Returns beta_D, beta_B, B_inf [3]; `clean_colors` gives the J_p for them."""
-    beta_b, b_inf = fit_backscatter(*dark_pixels(z, color, bins, share), b_inf=b_inf)
-    return fit_attenuation(point, color, z, beta_b, b_inf), beta_b, b_inf
+    at ranges z [M] > 0: beta_B (and B_inf unless `b_inf` [3] is given) from the dark pixels, then beta_D; with
+    `residual`, up to `rounds` rounds of the residual backscatter fit (with the last beta_D) and beta_D again, the
+    residual kept per channel where it lowers the BIC of the dark samples. `steps` candidates per 1-D search;
+    `max_observations` enter the beta_D fit. `clean_colors` gives the J_p for the medium."""
+    dark_z, dark_color = dark_pixels(z, color, bins, share)
+    beta_b, veil = fit_backscatter(dark_z, dark_color, b_inf=b_inf, steps=steps)
+    beta_d = fit_attenuation(point, color, z, beta_b, veil, steps, max_observations)
+    j_prime = torch.zeros(3)
+    if residual:
+        plain_b, plain_veil = beta_b, veil
+        plain = (backscatter_curve(dark_z, beta_b, veil) - dark_color).square().mean(0)
+        free = 1 if b_inf is None else 0
+        for _ in range(rounds):
+            rb, rv, rj = fit_backscatter_residual(dark_z, dark_color, beta_d, b_inf, steps)
+            mse = (backscatter_curve(dark_z, rb, rv, beta_d, rj) - dark_color).square().mean(0)
+            use = _bic(mse, len(dark_z), 2 + free) < _bic(plain, len(dark_z), 1 + free)
+            if not bool(use.any()) and not bool(j_prime.any()):
+                break
+            beta_b, veil = torch.where(use, rb, plain_b), torch.where(use, rv, plain_veil)
+            j_prime = torch.where(use, rj, torch.zeros(3))
+            beta_d = fit_attenuation(point, color, z, beta_b, veil, steps, max_observations)
+    return MediumFit(beta_d, beta_b, veil, j_prime, dark_z, dark_color)

@@ -185,9 +185,11 @@ class DensityControl(TrainingCallback):
                                          (camera.width, camera.height))
 
     def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
-        extra = self.extra_pruning
-        remove = extra.select(step) if extra is not None and self.strategy.is_refine_step(step) else None
-        origin = self.strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step, remove)
+        extra, strategy = self.extra_pruning, self.strategy
+        event = extra is not None and (strategy.is_refine_step(step) or (
+            extra.prunes_after_densification and strategy.is_late_prune_step(step)))
+        remove = extra.select(step) if event else None
+        origin = strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step, remove)
         if extra is not None and origin is not None:
             extra.reindex(origin)
 

@@ -113,7 +113,7 @@ class UW3DGSModel(GaussianSplattingModel):
         estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
                                    b_inf=water, dark_bins=mc.dark_bins, dark_share=mc.dark_share,
                                    sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None,
-                                   known=known)
+                                   known=known, residual=mc.estimate_residual)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)

@@ -15,10 +15,12 @@ from uw3dgs.fields.medium_estimate import (
     dark_pixels,
     estimate_medium,
     fit_backscatter,
+    fit_backscatter_residual,
     fit_medium,
     observe_points,
     open_water_color,
 )
+from uw3dgs.fields.medium_identifiability import assess_medium, bootstrap_observations
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -103,7 +105,7 @@ def test_backscatter_fit_recovers_the_curve_from_exact_samples():
 def test_fit_recovers_a_known_medium_from_exact_observations():
     """Points seen at several ranges each (2-12 units), some of them black: exact data pins all nine numbers."""
     clean, point, z, color = underwater_observations(300, 8, (2.0, 12.0), seed=0)
-    beta_d, beta_b, b_inf = fit_medium(point, color, z)
+    beta_d, beta_b, b_inf = fit_medium(point, color, z, residual=False).medium
     torch.testing.assert_close(beta_d, TRUE_D, rtol=0.02, atol=0)
     torch.testing.assert_close(b_inf, TRUE_BINF, rtol=0.03, atol=0)
     torch.testing.assert_close(beta_b, TRUE_B, rtol=0.05, atol=0)
@@ -116,10 +118,90 @@ def test_fit_with_the_veiling_light_known_recovers_the_betas_over_a_short_range_
     a little less backscatter and brighter colours explain the data as well."""
     _, point, z, color = underwater_observations(300, 6, (3.0, 6.0), seed=1)
     color = (color * 255).round() / 255  # 8-bit images
-    beta_d, beta_b, b_inf = fit_medium(point, color, z, b_inf=TRUE_BINF)
+    beta_d, beta_b, b_inf = fit_medium(point, color, z, b_inf=TRUE_BINF, residual=False).medium
     assert torch.equal(b_inf, TRUE_BINF)
     torch.testing.assert_close(beta_d, TRUE_D, rtol=0.03, atol=0)
     torch.testing.assert_close(beta_b, TRUE_B, rtol=0.05, atol=0)
+
+
+def seabed_observations(num_points: int, views: int, z_range: tuple[float, float], darkest: tuple[float, float],
+                        seed: int, medium: tuple[Tensor, Tensor, Tensor]):
+    """8-bit observations of a seabed with no black surface: a tenth of the points as dark as `darkest` (albedo
+    range), the rest brighter; each point seen `views` times within +-20% of its own range in `z_range`."""
+    beta_d, beta_b, b_inf = medium
+    g = torch.Generator().manual_seed(seed)
+    clean = darkest[0] + 0.6 * torch.rand(num_points, 3, generator=g)
+    clean[: num_points // 10] = darkest[0] + (darkest[1] - darkest[0]) * torch.rand(num_points // 10, 3, generator=g)
+    point = torch.arange(num_points).repeat_interleave(views)
+    base = z_range[0] + (z_range[1] - z_range[0]) * torch.rand(num_points, generator=g)
+    z = (base[point] * (0.8 + 0.4 * torch.rand(len(point), generator=g))).clamp(*z_range)
+    color = clean[point] * torch.exp(-beta_d * z[:, None]) + b_inf * (1 - torch.exp(-beta_b * z[:, None]))
+    return point, (color * 255).round() / 255, z
+
+
+DIVE = (torch.tensor([0.30, 0.10, 0.07]), torch.tensor([0.24, 0.20, 0.17]), torch.tensor([0.08, 0.30, 0.42]))
+
+
+def test_the_residual_term_recovers_a_medium_whose_darkest_surfaces_reflect_8_to_12_percent():
+    """Issue 19's failing case: seen from 3.5 to 22 m, no open water, darkest surfaces 8-12%. The plain fit takes
+    them for backscatter and saturates it early (red beta_B 3x too high); with Sea-thru's residual term every
+    number is within 10%, and B_inf comes from the far end of the ranges."""
+    point, color, z = seabed_observations(3000, 8, (3.5, 22.0), (0.08, 0.12), seed=0, medium=DIVE)
+    plain = fit_medium(point, color, z, residual=False)
+    assert float(plain.beta_b[0]) > 3 * float(DIVE[1][0])
+    fit = fit_medium(point, color, z)
+    for value, truth in zip(fit.medium, DIVE, strict=True):
+        torch.testing.assert_close(value, truth, rtol=0.10, atol=0)
+    assert bool((fit.residual > 0.05).all())  # J' ~ the darkest albedo, 0.08-0.12
+
+
+def test_the_residual_fit_is_exact_on_exact_samples_and_the_bic_keeps_the_plain_fit_for_black_surfaces():
+    z = torch.linspace(2, 20, 60)
+    beta_d, beta_b, b_inf = DIVE
+    j_prime = torch.tensor([0.1, 0.05, 0.0])
+    samples = b_inf * (1 - torch.exp(-beta_b * z[:, None])) + j_prime * torch.exp(-beta_d * z[:, None])
+    rb, rv, rj = fit_backscatter_residual(z, samples, beta_d)
+    torch.testing.assert_close(rb, beta_b, rtol=2e-3, atol=0)
+    torch.testing.assert_close(rv, b_inf, rtol=2e-3, atol=0)
+    torch.testing.assert_close(rj, j_prime, rtol=0, atol=2e-3)
+    # near-black dark points (albedo < 0.001): the residual is that small, and the medium within 1% of the truth
+    _, point, z, color = underwater_observations(300, 8, (2.0, 12.0), seed=0)
+    fit = fit_medium(point, color, z)
+    assert float(fit.residual.max()) < 1e-3
+    for value, truth in zip(fit.medium, (TRUE_D, TRUE_B, TRUE_BINF), strict=True):
+        torch.testing.assert_close(value, truth, rtol=0.01, atol=0)
+    # 8-bit samples of black surfaces: the one more parameter does not pay, the plain fit is kept
+    color = (color * 255).round() / 255
+    assert torch.equal(fit_medium(point, color, z).residual, torch.zeros(3))
+
+
+def test_bootstrap_resamples_points_with_all_their_observations():
+    point = torch.tensor([2, 0, 1, 0, 2, 2])
+    ids, rows = bootstrap_observations(point, torch.Generator().manual_seed(0))
+    # every new point holds exactly the observations of one original point
+    for new in ids.unique():
+        originals = point[rows[ids == new]].unique()
+        assert len(originals) == 1
+        assert int((ids == new).sum()) == int((point == originals[0]).sum())
+    assert int(ids.max()) + 1 == 3 and len(ids) == len(rows)
+
+
+def test_the_report_flags_a_narrow_bright_scene_and_passes_a_wide_dark_one():
+    """Seen from 3 to 4 m with no surface darker than 30%: the backscatter cannot be told from the surfaces, and
+    the report says so for beta_B and B_inf, before training. The wide scene with black shadows is identifiable."""
+    fast = dict(resamples=5, steps=60, max_observations=4000)
+    point, color, z = seabed_observations(800, 6, (3.0, 4.0), (0.3, 0.4), seed=1, medium=DIVE)
+    fit = fit_medium(point, color, z)
+    report = assess_medium(point, color, z, fit, None, 10, 0.01, residual=True, **fast)
+    assert all(report.weak("beta_B")) and any(report.weak("B_inf"))
+    text = "\n".join(report.lines())
+    assert "beta_B" in text and "optical depths" in text and "no open water in view" in text
+    assert report.to_json()["checks"][3]["name"] == "beta_B"
+
+    _, point, z, color = underwater_observations(800, 6, (2.0, 12.0), seed=2)
+    fit = fit_medium(point, color, z, b_inf=TRUE_BINF)
+    report = assess_medium(point, color, z, fit, TRUE_BINF, 10, 0.01, residual=True, **fast)
+    assert not any(report.weak("beta_D") + report.weak("beta_B") + report.weak("B_inf")), report.lines()
 
 
 def test_every_point_is_dehazed_even_those_too_few_views_see():

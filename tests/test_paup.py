@@ -150,7 +150,7 @@ def look_down(x: float, y: float, width: int = 40, height: int = 30, focal: floa
     return Camera(viewmat, K, width, height)
 
 
-def planted_floater_model(mask: str = "expected"):
+def planted_floater_model(mask: str = "expected", prune_after_densification: bool = False):
     """An opaque plane of small Gaussians that all three downward cameras see whole, and one opaque Gaussian 0.5
     below camera 0 and to its side, inside view 0 only, in open water there (the last Gaussian). It hides no part
     of the plane: a Gaussian of the plane hidden in one view is as view-inconsistent as the floater by U and P
@@ -163,7 +163,8 @@ def planted_floater_model(mask: str = "expected"):
     cameras = [look_down(0.0, 0.0), look_down(0.6, 0.0), look_down(0.0, 0.6)]
     scene = SceneData(name="plane", image_names=["0", "1", "2"], images=torch.zeros(3, 30, 40, 3), cameras=cameras,
                       points=means, point_colors=torch.full_like(means, 0.5), near=0.1, far=10.0)
-    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0, mask=mask))
+    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0, mask=mask,
+                                               prune_after_densification=prune_after_densification))
     model = config.setup(scene=scene, train_indices=[0, 1, 2])
     with torch.no_grad():
         model.gaussians.scales.copy_(torch.log(torch.cat([torch.full((len(plane), 3), 0.03),
@@ -192,6 +193,24 @@ def test_a_planted_floater_gets_the_highest_m_and_is_pruned_at_the_next_event():
     assert len(model.paup.uncertainty) == n - 1  # the statistics followed
     for name in ("means", "opacities"):  # so did the Adam state (none yet) and the optimizer's parameters
         assert optimizers.optimizers[name].param_groups[0]["params"][0] is getattr(model.gaussians, name)
+
+
+@pytest.mark.parametrize("after", [False, True])
+def test_after_densification_the_floater_is_pruned_only_with_the_late_pruning_knob(after):
+    model, cameras = planted_floater_model(prune_after_densification=after)
+    model.refresh_paup_statistics(cameras[0])
+    n = model.num_gaussians
+    optimizers = Optimizers(uw3dgs_optimizers(paup=True), model.param_groups(), model.scene_extent, 1000)
+    strategy = DefaultStrategy(model.config.densification, model.scene_extent, 1000)  # densifies up to step 500
+    control = DensityControl(strategy, model.gaussians, optimizers, extra_pruning=model.paup)
+    scales = model.gaussians.scales.detach().clone()
+    control.after_step(550, {"camera": cameras[0]}, {})  # off the cadence: nothing either way
+    assert model.num_gaussians == n
+    control.after_step(600, {"camera": cameras[0]}, {})
+    assert model.num_gaussians == (n - 1 if after else n)
+    assert int(model.paup.pruned_total) == int(after) and len(model.paup.uncertainty) == model.num_gaussians
+    assert torch.equal(model.gaussians.scales.detach(), scales[:model.num_gaussians])  # nothing split or cloned
+    assert optimizers.optimizers["means"].param_groups[0]["params"][0] is model.gaussians.means
 
 
 def test_statistics_follow_densification():

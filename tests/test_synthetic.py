@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import shutil
 from pathlib import Path
@@ -14,7 +15,20 @@ from PIL import Image
 
 from uw3dgs.cli.synth import entrypoint
 from uw3dgs.data.seathru_layout import read_seathru_layout
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
+from uw3dgs.datamanagers.synthetic.scene import (
+    SyntheticSceneConfig,
+    beta_field,
+    cache_key,
+    generate_scene,
+    medium_parameters,
+)
+from uw3dgs.datamanagers.synthetic.water_types import (
+    JERLOV_KD,
+    SOLONENKO_MOBLEY_A,
+    SOLONENKO_MOBLEY_B,
+    WATER_TYPES,
+    water_type,
+)
 
 # Small and quick; tilted enough that the far edge of the seabed leaves some open water in view.
 SMALL = SyntheticSceneConfig(width=48, height=36, num_views=10, terrain_size=16.0, terrain_resolution=0.04,
@@ -430,3 +444,202 @@ def test_cli_writes_marine_snow(tmp_path):
     particles = _particles(out)
     assert len(particles) == 6 and {p["view"] for p in particles} == {0, 1}
     assert all(0.02 <= p["radius"] <= 0.04 for p in particles)
+
+
+# Scene variants (issue 19): water types, darkest albedo, open water, range span, a spatially varying medium. Each is
+# one option away, and the default scene keeps its bytes and cache key.
+TINY = dataclasses.replace(SMALL, width=32, height=24, num_views=3, num_points=100, terrain_size=12.0,
+                           terrain_resolution=0.05)
+
+
+def _pixels(root: Path) -> np.ndarray:
+    return np.stack([np.asarray(Image.open(p)) for p in sorted((root / "Images_wb").glob("*.png"))])
+
+
+def _digest(array: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()[:16]
+
+
+def test_the_default_scene_is_unchanged_by_the_variants(scene_dir):
+    """Keys and pixels computed before the variant options existed: a knob that is off changes nothing."""
+    assert cache_key(SyntheticSceneConfig()) == "ecf3ad650b29"
+    assert cache_key(SMALL) == "cde691d1356c"
+    assert _digest(_pixels(scene_dir)) == "5c291a9cd3a64f02"
+    ranges = np.stack([np.load(p) for p in sorted((scene_dir / "gt" / "range").glob("*.npy"))])
+    assert _digest(ranges) == "3b71d48f0cc2e1a2"
+    medium = json.loads((scene_dir / "gt" / "medium.json").read_text())
+    assert not {"water_type", "medium_profile"} & set(medium)
+    assert not {"water_type", "open_water", "medium_profile", "plume_center"} & set(medium["config"])
+    # knobs of a profile that is off do not count
+    assert cache_key(dataclasses.replace(SMALL, turbid_height=5.0, plume_radius=0.5)) == cache_key(SMALL)
+    assert cache_key(dataclasses.replace(SMALL, medium_profile="turbid-bottom", plume_center=(1.0, 1.0, 1.0))) == \
+        cache_key(dataclasses.replace(SMALL, medium_profile="turbid-bottom"))
+    for change in ({"water_type": "II"}, {"open_water": False}, {"medium_profile": "plume"}):
+        assert cache_key(dataclasses.replace(SMALL, **change)) != cache_key(SMALL), change
+
+
+def test_water_types_are_the_cited_tables():
+    """Jerlov (1976) Table XXVII K_d and Solonenko & Mobley (2015) a, b, at 600, 525, 475 nm (R, G, B)."""
+    assert WATER_TYPES == ("I", "II", "III", "1C", "3C", "5C", "7C", "9C")
+    assert JERLOV_KD["I"] == (0.235, 0.043, 0.018) and JERLOV_KD["9C"] == (0.60, 0.78, 1.23)
+    assert SOLONENKO_MOBLEY_A["1C"] == (0.236, 0.068, 0.077) and SOLONENKO_MOBLEY_B["1C"] == (0.314, 0.395, 0.469)
+    assert SOLONENKO_MOBLEY_B["7C"] == (2.03, 2.54, 3.01)
+    coastal = water_type("3C")
+    assert coastal.beta_D == coastal.beta_B == (0.33, 0.20, 0.29)
+    np.testing.assert_allclose(coastal.B_inf, [0.916 / 1.155, 1.15 / 1.228, 1.36 / 1.465])
+    clear = water_type("I")  # almost no particles: a dark blue veil
+    assert clear.B_inf[0] < 0.01 < clear.B_inf[1] < clear.B_inf[2] < 0.2
+    medium = medium_parameters(SyntheticSceneConfig(water_type="9C", medium_strength=2.0, water_light=0.5))
+    np.testing.assert_allclose(medium["beta_D"], [1.2, 1.56, 2.46])
+    np.testing.assert_allclose(medium["B_inf"], 0.5 * np.array(water_type("9C").B_inf))
+
+
+@pytest.mark.parametrize("name", ["I", "9C"])
+def test_a_water_type_scene_follows_its_medium(tmp_path, name):
+    root = generate_scene(dataclasses.replace(TINY, water_type=name), tmp_path / name, progress=False)
+    scene = read_seathru_layout(root)
+    medium = scene.gt.medium
+    water = water_type(name)
+    assert medium["beta_D"] == pytest.approx(water.beta_D) and medium["B_inf"] == pytest.approx(water.B_inf)
+    assert medium["water_type"]["name"] == name and medium["water_type"]["wavelengths_nm"] == [600, 525, 475]
+    t = scene.gt.ranges.double().numpy()[..., None]
+    expected = scene.gt.clean_images.double().numpy() * np.exp(-np.array(water.beta_D) * t) + \
+        np.array(water.B_inf) * (1 - np.exp(-np.array(water.beta_B) * t))
+    assert np.abs(scene.images.double().numpy() - expected).max() <= 0.5 / 255 + 1e-5
+
+
+def test_darkest_albedo_variants(tmp_path):
+    """dark_patch_albedo 0.03 (default), 0.1, 0.2: the darkest seabed brightens, as real sand and rock are darkest."""
+    darkest = []
+    for albedo in (0.03, 0.1, 0.2):
+        scene = read_seathru_layout(generate_scene(dataclasses.replace(TINY, dark_patch_albedo=albedo),
+                                                   tmp_path / str(albedo), progress=False))
+        seabed = scene.gt.clean_images.numpy()[np.isfinite(scene.gt.ranges.numpy())]
+        darkest.append(np.percentile(seabed.max(axis=-1), 1))
+    assert darkest[0] < 0.04 and darkest[0] < darkest[1] < darkest[2]
+
+
+def test_without_open_water(scene_dir, tmp_path):
+    """open_water off: the seabed goes on beyond its square, so no ray sees open water; the seabed inside the square
+    (what the default scene shows) is the same, and the formation model holds."""
+    root = generate_scene(dataclasses.replace(SMALL, open_water=False), tmp_path / "closed", progress=False)
+    closed, open_ = read_seathru_layout(root), read_seathru_layout(scene_dir)
+    ranges, before = closed.gt.ranges.double().numpy(), open_.gt.ranges.double().numpy()
+    assert np.isfinite(ranges).all() and np.isinf(before).mean() > 0.05
+    seen = np.isfinite(before)
+    assert np.mean(np.abs(ranges[seen] - before[seen]) < 1e-3 * before[seen]) > 0.99
+    assert ranges.max() > before[seen].max()  # the far end now reaches past the square's edge
+    medium = closed.gt.medium
+    t = ranges[..., None]
+    expected = closed.gt.clean_images.double().numpy() * np.exp(-np.array(medium["beta_D"]) * t) + \
+        np.array(medium["B_inf"]) * (1 - np.exp(-np.array(medium["beta_B"]) * t))
+    assert np.abs(closed.images.double().numpy() - expected).max() <= 0.5 / 255 + 1e-5
+    with pytest.raises(ValueError, match="lower tilt_deg"):  # rays above the horizon never meet the seabed
+        generate_scene(dataclasses.replace(TINY, open_water=False, tilt_deg=80.0), tmp_path / "sky", progress=False)
+
+
+def test_a_narrow_range_span(tmp_path):
+    """Range span variant: 1.5 m up, looking nearly straight down (tilt 5 degrees from nadir)."""
+    config = dataclasses.replace(TINY, altitude=1.5, tilt_deg=5.0)
+    ranges = read_seathru_layout(generate_scene(config, tmp_path / "narrow", progress=False)).gt.ranges.numpy()
+    assert np.isfinite(ranges).all()
+    assert ranges.min() > 0.5 and ranges.max() < 3.0 and ranges.max() / ranges.min() < 3.0
+
+
+def _profile_factor(profile: dict, points: np.ndarray) -> np.ndarray:
+    """The factor written in gt/medium.json, evaluated here on its own (float64)."""
+    if profile["kind"] == "turbid-bottom":
+        return 1.0 + profile["gain"] * np.exp(-np.maximum(points[..., 2], 0.0) / profile["height"])
+    d2 = ((points - np.array(profile["center"])) ** 2).sum(-1)
+    return 1.0 + profile["gain"] * np.exp(-d2 / (2 * profile["radius"] ** 2))
+
+
+@pytest.mark.parametrize("profile", ["turbid-bottom", "plume"])
+def test_a_varying_medium_follows_the_ray_mean_model(tmp_path, profile):
+    """Each pixel is J exp(-int beta_D) + B_inf (1 - exp(-int beta_B)) along its ray, integrated here by brute force
+    (20,000 samples, float64) from the profile written to gt/medium.json; open water is B_inf alone."""
+    config = dataclasses.replace(TINY, medium_profile=profile)
+    scene = read_seathru_layout(generate_scene(config, tmp_path / profile, progress=False))
+    medium = scene.gt.medium
+    beta_D, beta_B, B_inf = (np.array(medium[k]) for k in ("beta_D", "beta_B", "B_inf"))
+    assert beta_D == pytest.approx(list(TINY.beta_D))  # gt/medium.json keeps the reference medium
+    rng = np.random.default_rng(0)
+    s = (np.arange(20000) + 0.5) / 20000
+    spread = []
+    for k, cam in enumerate(scene.cameras):
+        viewmat = cam.viewmat.double().numpy()
+        dirs = _pixel_dirs(cam.K.double().numpy(), viewmat, TINY.height, TINY.width)
+        ranges = scene.gt.ranges[k].double().numpy()
+        observed, clean = scene.images[k].double().numpy(), scene.gt.clean_images[k].double().numpy()
+        water = np.isinf(ranges)
+        assert (np.round(observed[water] * 255) == np.round(B_inf * 255)).all()
+        for i, j in zip(*(a[:25] for a in np.nonzero(~water & (rng.random(water.shape) < 0.2))), strict=True):
+            points = _centre(viewmat) + dirs[i, j] * (ranges[i, j] * s)[:, None]
+            optical = _profile_factor(medium["medium_profile"], points).mean() * ranges[i, j]
+            spread.append(optical / ranges[i, j])
+            expected = clean[i, j] * np.exp(-beta_D * optical) + B_inf * (1 - np.exp(-beta_B * optical))
+            assert np.abs(observed[i, j] - expected).max() <= 0.5 / 255 + 1e-5, (k, i, j)
+    assert len(spread) >= 50 and max(spread) > 1.3  # the medium along the rays is far from the reference
+
+
+def test_the_turbid_bottom_field_grows_towards_the_seabed():
+    config = SyntheticSceneConfig(medium_profile="turbid-bottom", medium_profile_gain=3.0, turbid_height=1.0)
+    heights = np.array([-0.5, 0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 30.0])
+    beta_D, beta_B = beta_field(config, np.stack([np.zeros(8), np.ones(8), heights], axis=1))
+    reference = np.array(config.beta_D)
+    np.testing.assert_allclose(beta_D[:2], 4.0 * np.stack([reference] * 2))  # (1 + gain) x at and below the seabed
+    np.testing.assert_allclose(beta_D[-1], reference, rtol=1e-9)
+    assert (np.diff(beta_D[1:], axis=0) < 0).all() and (np.diff(beta_B[1:], axis=0) < 0).all()
+    plume = dataclasses.replace(config, medium_profile="plume", plume_center=(1.0, 2.0, 1.5), plume_radius=1.0)
+    centre, far = beta_field(plume, np.array([[1.0, 2.0, 1.5], [1.0, 12.0, 1.5]]))[1]
+    np.testing.assert_allclose(centre, 4.0 * np.array(config.beta_B))
+    np.testing.assert_allclose(far, config.beta_B)
+    homogeneous = beta_field(SyntheticSceneConfig(), np.zeros((2, 3)))[0]
+    np.testing.assert_allclose(homogeneous, [SyntheticSceneConfig().beta_D] * 2)
+
+
+def test_marine_snow_in_a_varying_medium(tmp_path):
+    """Particles are seen through the mean beta along their own ray; pixels away from them keep their bytes."""
+    plain = dataclasses.replace(TINY, medium_profile="plume")
+    snowy = dataclasses.replace(plain, marine_snow=4, marine_snow_radius=(0.03, 0.05))
+    before = _pixels(generate_scene(plain, tmp_path / "plain", progress=False)).astype(int)
+    root = generate_scene(snowy, tmp_path / "snowy", progress=False)
+    after = _pixels(root).astype(int)
+    changed = (after != before).any(-1)
+    assert (after >= before).all() and 0 < changed.mean() < 0.2
+    for k in range(TINY.num_views):
+        v, u = np.meshgrid(np.arange(TINY.height) + 0.5, np.arange(TINY.width) + 0.5, indexing="ij")
+        near = np.zeros_like(changed[k])
+        for p in (p for p in _particles(root) if p["view"] == k):
+            near |= np.hypot(u - p["uv"][0], v - p["uv"][1]) <= p["radius_px"] + 1.5
+        assert not (changed[k] & ~near).any()
+
+
+@pytest.mark.parametrize(("change", "name"), [
+    ({"water_type": "IA"}, "water_type"),  # Jerlov tabulates IA, but no cited b gives its B_inf
+    ({"water_type": "1C", "beta_D": (1.0, 1.0, 1.0)}, "beta_D"),
+    ({"water_type": "1C", "B_inf": (0.1, 0.1, 0.1)}, "B_inf"),
+    ({"water_type": "1C", "water_light": 1.5}, "water_light"),
+    ({"water_light": 0.5}, "water_light"),
+    ({"medium_profile": "fog"}, "medium_profile"),
+    ({"medium_profile_gain": -1.0}, "medium_profile_gain"),
+    ({"turbid_height": 0.0}, "turbid_height"),
+    ({"plume_radius": -1.0}, "plume_radius"),
+    ({"plume_center": (0.0, float("nan"), 1.0)}, "plume_center"),
+])
+def test_variant_options_are_checked(change, name):
+    with pytest.raises(ValueError, match=name):
+        dataclasses.replace(SMALL, **change)
+
+
+def test_cli_writes_a_variant(tmp_path):
+    out = tmp_path / "cli"
+    entrypoint(["--out", str(out), "--width", "32", "--height", "24", "--num-views", "2", "--num-points", "50",
+                "--terrain-size", "12", "--terrain-resolution", "0.05", "--water-type", "1C", "--no-open-water",
+                "--medium-profile", "turbid-bottom", "--turbid-height", "0.5"])
+    scene = read_seathru_layout(out)
+    assert scene.gt.ranges.isfinite().all()
+    medium = scene.gt.medium
+    assert medium["beta_D"] == pytest.approx(list(JERLOV_KD["1C"])) and medium["water_type"]["name"] == "1C"
+    assert (medium["medium_profile"]["kind"], medium["medium_profile"]["height"]) == ("turbid-bottom", 0.5)
+    assert (medium["config"]["water_type"], medium["config"]["open_water"]) == ("1C", False)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Literal
 
@@ -21,12 +21,19 @@ import pycolmap
 from PIL import Image
 from rich.progress import Progress
 
+from uw3dgs.datamanagers.synthetic.water_types import SOURCES as WATER_TYPE_SOURCES
+from uw3dgs.datamanagers.synthetic.water_types import WATER_TYPES, WAVELENGTHS_NM, water_type
 from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 GENERATOR_VERSION = 2
 """Bump when the generator's output changes for an unchanged config: it is part of `cache_key`."""
 
 RGB = tuple[float, float, float]
+WaterTypeName = Literal["I", "II", "III", "1C", "3C", "5C", "7C", "9C"]
+MediumProfile = Literal["homogeneous", "turbid-bottom", "plume"]
+
+RAY_SAMPLES = 128
+"""Samples along each ray (midpoint rule) for the ray mean of a spatially varying medium."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,10 @@ class SyntheticSceneConfig(CheckedConfig):
     """Standard deviation of random yaw, tilt and roll perturbations, in degrees."""
     terrain_size: float = 24.0
     """Side of the square seabed centred on the origin, in metres; rays leaving it see open water."""
+    open_water: bool = True
+    """Whether rays that leave the seabed square see open water (I = B_inf). False continues the seabed beyond the
+    square as its mirror image, so every ray pointing below the horizon meets the seabed (ranges then reach further)
+    and the seabed inside the square is unchanged; a view with rays above the horizon is refused (lower tilt_deg)."""
     terrain_resolution: float = 0.02
     """Grid spacing of the height field and texture, in metres (finest texture detail is 2-3 cells)."""
     relief: float = 0.25
@@ -103,6 +114,28 @@ class SyntheticSceneConfig(CheckedConfig):
     """Veiling light (backscatter at infinite range), RGB in [0, 1]."""
     medium_strength: float = 1.0
     """Multiplier on both beta_D and beta_B (0 = clear water)."""
+    water_type: WaterTypeName | None = None
+    """A Jerlov water type (oceanic I, II, III; coastal 1C, 3C, 5C, 7C, 9C) whose published coefficients replace
+    beta_D, beta_B and B_inf (leave those at their defaults): beta_D = beta_B = K_d (Jerlov 1976, Table XXVII) and
+    B_inf = water_light x b / (a + b) (Solonenko & Mobley 2015), read at 600, 525, 475 nm for R, G, B
+    (datamanagers/synthetic/water_types.py). None keeps the hand-set medium above."""
+    water_light: float = 1.0
+    """With water_type: the level E of the light in the water, B_inf = E b / (a + b) (Akkaynak & Treibitz 2018);
+    1 = the white light of level 1 that lights the seabed's clean radiance (white-balanced images)."""
+    medium_profile: MediumProfile = "homogeneous"
+    """How beta_D and beta_B vary in space: both are the reference medium (above, or the water type's) times a
+    factor f(x) >= 1. 'homogeneous': f = 1. 'turbid-bottom': f = 1 + gain exp(-max(z, 0) / turbid_height), z the
+    height above the mean seabed (turbidity grows towards the seabed). 'plume': f = 1 + gain exp(-|x -
+    plume_center|^2 / (2 plume_radius^2)), a Gaussian cloud. A pixel sees the mean of beta along its ray from the
+    camera to the seabed (the method's model); B_inf stays one colour."""
+    medium_profile_gain: float = 3.0
+    """gain of medium_profile: beta at the seabed (turbid-bottom) or the plume's centre is (1 + gain) x reference."""
+    turbid_height: float = 1.0
+    """turbid-bottom: height above the mean seabed over which the extra turbidity falls by e, in metres."""
+    plume_radius: float = 2.0
+    """plume: standard deviation of the Gaussian cloud, in metres."""
+    plume_center: tuple[float, float, float] = (0.0, 4.0, 1.0)
+    """plume: centre (x, y, z) in metres (the default is where the forward path's cameras look)."""
     num_points: int = 4000
     """Number of SfM-like initial points written to points3D.bin (outliers included)."""
     point_noise: float = 0.01
@@ -157,15 +190,47 @@ class SyntheticSceneConfig(CheckedConfig):
             if low > high:
                 raise OptionError(name, f"must be (smallest, largest), got {(low, high)}")
         check_number(self, "marine_snow_brightness", ge=0, le=1)
+        check_number(self, "water_light", ge=0, le=1)
+        if self.water_type is None and self.water_light != 1.0:
+            raise OptionError("water_light", "only applies with water_type (the hand-set B_inf is used as it is)")
+        if self.water_type is not None:
+            if self.water_type not in WATER_TYPES:
+                raise OptionError("water_type", f"must be one of {', '.join(WATER_TYPES)} (or None), "
+                                                f"got {self.water_type!r}")
+            defaults = {f.name: f.default for f in fields(self)}
+            for name in ("beta_D", "beta_B", "B_inf"):
+                if tuple(getattr(self, name)) != defaults[name]:
+                    raise OptionError(name, f"cannot be set together with water_type (the water type "
+                                            f"{self.water_type} sets beta_D, beta_B and B_inf)")
+        if self.medium_profile not in ("homogeneous", "turbid-bottom", "plume"):
+            raise OptionError("medium_profile", "must be one of homogeneous, turbid-bottom, plume, "
+                                                f"got {self.medium_profile!r}")
+        check_number(self, "medium_profile_gain", ge=0)
+        for name in ("turbid_height", "plume_radius"):
+            check_number(self, name, gt=0)
+        check_number(self, "plume_center", each=True)
 
 
 def _config_record(config: SyntheticSceneConfig) -> dict:
-    """The config as written to gt/medium.json and hashed by `cache_key`. Without marine snow its knobs change
-    nothing and are left out, so snow-free scenes keep the keys and bytes they had before the option existed."""
+    """The config as written to gt/medium.json and hashed by `cache_key`. Knobs of an option that is off change
+    nothing and are left out (marine snow, water type, open water, medium profile), so scenes without the option
+    keep the keys and bytes they had before it existed."""
     record = asdict(config)
+    unused = []
     if config.marine_snow == 0:
-        for name in ("marine_snow", "marine_snow_range", "marine_snow_radius", "marine_snow_brightness"):
-            del record[name]
+        unused += ["marine_snow", "marine_snow_range", "marine_snow_radius", "marine_snow_brightness"]
+    if config.water_type is None:
+        unused += ["water_type", "water_light"]
+    if config.open_water:
+        unused.append("open_water")
+    if config.medium_profile != "turbid-bottom":
+        unused.append("turbid_height")
+    if config.medium_profile != "plume":
+        unused += ["plume_radius", "plume_center"]
+    if config.medium_profile == "homogeneous":
+        unused += ["medium_profile", "medium_profile_gain"]
+    for name in unused:
+        del record[name]
     return record
 
 
@@ -186,6 +251,12 @@ def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
 
 def _lerp(a: np.ndarray, b: np.ndarray, t: np.ndarray) -> np.ndarray:
     return a + (b - a) * t
+
+
+def _reflect(f: np.ndarray, m: float) -> np.ndarray:
+    """Grid coordinate f folded into [0, m] by mirroring at 0 and m (a triangle wave of period 2m)."""
+    g = np.mod(f, 2.0 * m)
+    return np.where(g > m, 2.0 * m - g, g)
 
 
 class _Noise:
@@ -221,16 +292,24 @@ class Terrain:
     """[n, n] heights in metres; row i is y = x0 + i * resolution, column j is x = x0 + j * resolution."""
     radiance: np.ndarray
     """[n, n, 3] clean radiance (albedo times Lambertian shading) in [0, 1]."""
+    mirror: bool = False
+    """False: the seabed ends at the square's edge (rays beyond see open water). True: it continues beyond as its
+    mirror image across each edge (an unbounded, continuous height field: every downward ray meets it)."""
 
     @property
     def extent(self) -> tuple[float, float]:
         return self.x0, self.x0 + (self.heights.shape[0] - 1) * self.resolution
 
     def _cell(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Flat index of the grid cell holding each point (clamped to the grid) and the weights in it."""
+        """Flat index of the grid cell holding each point (clamped to the grid, or folded into it with `mirror`)
+        and the weights in it."""
         n = self.heights.shape[0]
-        fx = np.clip((x - self.x0) / self.resolution, 0.0, n - 1.0)
-        fy = np.clip((y - self.x0) / self.resolution, 0.0, n - 1.0)
+        if self.mirror:
+            fx = _reflect((x - self.x0) / self.resolution, n - 1.0)
+            fy = _reflect((y - self.x0) / self.resolution, n - 1.0)
+        else:
+            fx = np.clip((x - self.x0) / self.resolution, 0.0, n - 1.0)
+            fy = np.clip((y - self.x0) / self.resolution, 0.0, n - 1.0)
         j = np.minimum(fx.astype(np.int64), n - 2)
         i = np.minimum(fy.astype(np.int64), n - 2)
         return i * n + j, fx - j, fy - i
@@ -266,6 +345,8 @@ class Terrain:
         dz = np.where(down, -dirs[:, 2], 1.0)
         t0 = np.where(down, np.maximum((origin[2] - h.max()) / dz, 0.0), np.inf)
         t1 = np.where(down, (origin[2] - h.min()) / dz, -np.inf)
+        if self.mirror:  # the seabed goes on beyond the square
+            return t0, t1
         for axis in (0, 1):
             d = dirs[:, axis]
             safe = np.where(d == 0.0, 1.0, d)
@@ -435,7 +516,8 @@ def build_terrain(cfg: SyntheticSceneConfig, focus: np.ndarray, rng: np.random.G
     heights = base + rock_heights + ripples * (1.0 - 0.7 * algae) * (1.0 - rock)
     albedo = _albedo(cfg, coords, noise, algae, rock, rock_colours, focus, rng)
     radiance = np.clip(albedo * _shading(cfg, heights)[..., None], 0.0, 1.0)
-    return Terrain(float(coords[0]), cfg.terrain_resolution, heights, radiance.astype(np.float32))
+    return Terrain(float(coords[0]), cfg.terrain_resolution, heights, radiance.astype(np.float32),
+                   mirror=not cfg.open_water)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -540,6 +622,9 @@ class RenderedView:
     """[H, W, 3] uint8 clean radiance (0 for open water)."""
     underwater: np.ndarray
     """[H, W, 3] uint8 underwater image."""
+    ray_mean: np.ndarray | None = None
+    """[H, W] mean of the medium profile's factor along each pixel-centre ray to the seabed (the pixel's beta is
+    the reference beta times it); None for a homogeneous medium."""
 
 
 def ray_directions(K: np.ndarray, c2w: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -562,6 +647,60 @@ def underwater_image(
     """I = J exp(-beta_D t) + B_inf (1 - exp(-beta_B t)); at t = inf only the veiling light B_inf remains."""
     t = ranges[..., None]
     return clean * np.exp(-beta_D * t) + B_inf * (1.0 - np.exp(-beta_B * t))
+
+
+def varying_underwater_image(clean: np.ndarray, ranges: np.ndarray, ray_mean: np.ndarray,
+                             medium: dict[str, np.ndarray]) -> np.ndarray:
+    """The formation model with the ray-mean beta of a spatially varying medium: with beta(x) = beta_ref f(x) and
+    m = the mean of f along the ray to range t, I = J exp(-beta_D_ref m t) + B_inf (1 - exp(-beta_B_ref m t)).
+    exp(-beta_D_ref m t) is the exact Beer-Lambert transmittance; the backscatter term is the method's ray-mean model,
+    which is also the exact integral of a source B_inf beta_B(s) attenuated by beta_B on its way back
+    (int_0^t beta_B(s) exp(-int_0^s beta_B) ds = 1 - exp(-int_0^t beta_B)). At t = inf (open water) the optical depth
+    is infinite wherever beta > 0, so only B_inf remains, as in the homogeneous model."""
+    finite = np.isfinite(ranges)[..., None]
+    path = np.where(finite, (ray_mean * np.where(np.isfinite(ranges), ranges, 0.0))[..., None], 0.0)
+
+    def depth(beta: np.ndarray) -> np.ndarray:
+        return np.where(finite, beta * path, np.where(beta > 0, np.inf, 0.0))
+
+    return clean * np.exp(-depth(medium["beta_D"])) + medium["B_inf"] * (1.0 - np.exp(-depth(medium["beta_B"])))
+
+
+def profile_factor(cfg: SyntheticSceneConfig, points: np.ndarray) -> np.ndarray:
+    """The medium profile's factor f [...] >= 1 at world points [..., 3] (beta = reference beta x f)."""
+    gain = cfg.medium_profile_gain
+    if cfg.medium_profile == "turbid-bottom":
+        return 1.0 + gain * np.exp(-np.maximum(points[..., 2], 0.0) / cfg.turbid_height)
+    if cfg.medium_profile == "plume":
+        d2 = np.sum((points - np.asarray(cfg.plume_center, dtype=float)) ** 2, axis=-1)
+        return 1.0 + gain * np.exp(-d2 / (2.0 * cfg.plume_radius ** 2))
+    return np.ones(points.shape[:-1])
+
+
+def beta_field(cfg: SyntheticSceneConfig, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The true beta_D and beta_B [N, 3] (per metre) at world points [N, 3]: the reference medium
+    (`medium_parameters`, the values in gt/medium.json) times the profile's factor, so a learned field can be scored
+    against the truth anywhere."""
+    medium = medium_parameters(cfg)
+    f = profile_factor(cfg, np.asarray(points, dtype=float))[..., None]
+    return medium["beta_D"] * f, medium["beta_B"] * f
+
+
+def ray_mean_factor(cfg: SyntheticSceneConfig, origin: np.ndarray, dirs: np.ndarray, ranges: np.ndarray,
+                    samples: int = RAY_SAMPLES, chunk: int = 4096) -> np.ndarray:
+    """Mean of the profile's factor along each ray [...] from `origin` along unit `dirs` [..., 3] to `ranges` [...]
+    (midpoint rule with `samples` points); rays of infinite range get NaN (their optical depth is infinite)."""
+    flat_dirs, flat_t = dirs.reshape(-1, 3), ranges.reshape(-1)
+    out = np.full(flat_t.shape, np.nan)
+    s = (np.arange(samples) + 0.5) / samples
+    for start in range(0, len(flat_t), chunk):
+        t = flat_t[start:start + chunk]
+        ok = np.isfinite(t)
+        if ok.any():
+            dist = t[ok, None] * s  # [P, S]
+            points = origin + flat_dirs[start:start + chunk][ok, None, :] * dist[..., None]
+            out[start:start + chunk][ok] = profile_factor(cfg, points).mean(axis=1)
+    return out.reshape(ranges.shape)
 
 
 def _to_uint8(x: np.ndarray) -> np.ndarray:
@@ -588,16 +727,26 @@ def render_view(
     ranges = t[-1]
     clean8 = _to_uint8(np.where(np.isfinite(ranges)[..., None], clean, 0.0))
     # The underwater image uses the stored 8-bit clean image, so gt/ reproduces it to 8-bit rounding.
-    uw = underwater_image(clean8 / 255.0, ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
-    return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw))
+    if cfg.medium_profile == "homogeneous":
+        uw = underwater_image(clean8 / 255.0, ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
+        return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw))
+    ray_mean = ray_mean_factor(cfg, origin, dirs[-1], ranges)
+    uw = varying_underwater_image(clean8 / 255.0, ranges, ray_mean, medium)
+    return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw), ray_mean)
 
 
 def medium_parameters(cfg: SyntheticSceneConfig) -> dict[str, np.ndarray]:
-    """The true medium: betas scaled by `medium_strength`, per metre."""
+    """The true (reference) medium: betas scaled by `medium_strength`, per metre; the water type's when one is set.
+    With a medium profile these are the values where its factor is 1 (see `beta_field`)."""
+    if cfg.water_type is not None:
+        water = water_type(cfg.water_type)
+        beta_D, beta_B, B_inf = water.beta_D, water.beta_B, cfg.water_light * np.array(water.B_inf)
+    else:
+        beta_D, beta_B, B_inf = cfg.beta_D, cfg.beta_B, cfg.B_inf
     return {
-        "beta_D": cfg.medium_strength * np.array(cfg.beta_D),
-        "beta_B": cfg.medium_strength * np.array(cfg.beta_B),
-        "B_inf": np.array(cfg.B_inf),
+        "beta_D": cfg.medium_strength * np.array(beta_D),
+        "beta_B": cfg.medium_strength * np.array(beta_B),
+        "B_inf": np.array(B_inf),
     }
 
 
@@ -644,7 +793,12 @@ def add_marine_snow(cfg: SyntheticSceneConfig, view: RenderedView, snow: MarineS
     covers a share a of a pixel (4 x 4 sub-samples, antialiased) and is in front of that pixel's seabed,
     I = (1 - a) I + a I_p, with I_p = J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) the particle seen through z
     of water. Pixels no particle covers keep the bytes of `view.underwater`."""
-    uw = underwater_image(view.clean / 255.0, view.ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
+    if view.ray_mean is None:
+        uw = underwater_image(view.clean / 255.0, view.ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
+    else:  # a varying medium: each particle is seen through the mean beta along its own ray
+        uw = varying_underwater_image(view.clean / 255.0, view.ranges, view.ray_mean, medium)
+        origin = view.c2w[:3, 3]
+        particle_mean = ray_mean_factor(cfg, origin, (snow.xyz - origin) / snow.range[:, None], snow.range)
     sub = (np.arange(4) + 0.5) / 4
     for p in np.argsort(-snow.range):
         (u, v), r, z = snow.uv[p], snow.radius_px[p], snow.range[p]
@@ -656,8 +810,12 @@ def add_marine_snow(cfg: SyntheticSceneConfig, view: RenderedView, snow: MarineS
         inside = np.clip((r - dist) * 4 + 0.5, 0.0, 1.0)  # soft edge over one sub-sample
         cover = inside.reshape(i1 - i0, 4, j1 - j0, 4).mean(axis=(1, 3))
         cover *= view.ranges[i0:i1, j0:j1] > z  # the seabed in front hides it
-        radiance = underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
-                                    medium["beta_D"], medium["beta_B"], medium["B_inf"])
+        if view.ray_mean is None:
+            radiance = underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
+                                        medium["beta_D"], medium["beta_B"], medium["B_inf"])
+        else:
+            radiance = varying_underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
+                                                np.asarray(particle_mean[p]), medium)
         a = cover[..., None]
         uw[i0:i1, j0:j1] = np.where(a > 0, (1.0 - a) * uw[i0:i1, j0:j1] + a * radiance, uw[i0:i1, j0:j1])
     return _to_uint8(uw)
@@ -777,9 +935,27 @@ def _write_views(out_dir: Path, views: list[RenderedView]) -> None:
 
 
 def _write_medium(path: Path, cfg: SyntheticSceneConfig, medium: dict[str, np.ndarray]) -> None:
+    """gt/medium.json: beta_D, beta_B, B_inf (the homogeneous medium, or a varying one's reference values), units,
+    seed, generator version and config; with a water type its name and sources, with a medium profile its formula
+    and parameters (`beta_field` evaluates it)."""
     content = {key: [float(x) for x in value] for key, value in medium.items()}
     content |= {"units": "per metre (world unit)", "seed": cfg.seed, "generator_version": GENERATOR_VERSION,
                 "config": _config_record(cfg)}
+    if cfg.water_type is not None:
+        content["water_type"] = {"name": cfg.water_type, "wavelengths_nm": list(WAVELENGTHS_NM),
+                                 "water_light": cfg.water_light, "sources": WATER_TYPE_SOURCES}
+    if cfg.medium_profile != "homogeneous":
+        formula = {"turbid-bottom": "1 + gain * exp(-max(z, 0) / height), z = height above the mean seabed",
+                   "plume": "1 + gain * exp(-|x - center|^2 / (2 radius^2))"}[cfg.medium_profile]
+        profile = {"kind": cfg.medium_profile, "gain": cfg.medium_profile_gain, "factor": formula,
+                   "meaning": "beta_D(x) = beta_D * factor(x) and beta_B(x) = beta_B * factor(x), with beta_D and "
+                              "beta_B above the reference values (factor 1); B_inf is one colour. A pixel sees the "
+                              "mean of beta along its ray from the camera to the seabed."}
+        if cfg.medium_profile == "turbid-bottom":
+            profile["height"] = cfg.turbid_height
+        else:
+            profile |= {"radius": cfg.plume_radius, "center": list(cfg.plume_center)}
+        content["medium_profile"] = profile
     path.write_text(json.dumps(content, indent=2, sort_keys=True) + "\n")
 
 
@@ -805,8 +981,11 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
         _check_cameras(terrain, c2w)
         bar.update(task, advance=1, description="ray casting")
         views = []
-        for pose in c2w:
+        for k, pose in enumerate(c2w):
             views.append(render_view(config, terrain, K, pose, medium))
+            if not config.open_water and not np.isfinite(views[-1].ranges).all():
+                raise ValueError(f"view {k} looks above the horizon, where no seabed is: open_water off needs every "
+                                 "ray to point down; lower tilt_deg")
             bar.advance(task)
         bar.update(task, description="writing")
         xyz, rgb = sample_points(config, views, K, point_rng)  # from the snow-free images: specks never triangulate

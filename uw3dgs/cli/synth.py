@@ -55,6 +55,13 @@ def summary(config: SyntheticSceneConfig, out: Path, seconds: float) -> Table:
         ("points", f"{config.num_points} in sparse/0/points3D.bin"),
         ("where", f"{out} ({disk / 2**20:.1f} MiB)"),
     ]
+    if config.water_type is not None:
+        rows.insert(1, ("water type", f"Jerlov {config.water_type}: beta_D = beta_B = K_d (Jerlov 1976), "
+                                      "B_inf from b / (a + b) (Solonenko & Mobley 2015)"))
+    if config.medium_profile != "homogeneous":
+        where = "at the seabed" if config.medium_profile == "turbid-bottom" else "at the plume's centre"
+        rows.insert(-1, ("medium profile", f"{config.medium_profile}: beta up to {1 + config.medium_profile_gain:g}x "
+                                           f"the values above ({where}); see gt/medium.json"))
     if config.marine_snow > 0:
         rows.insert(-1, ("marine snow", f"{config.marine_snow} particles per view, in Images_wb/ only "
                                         "(listed in gt/marine_snow.json)"))

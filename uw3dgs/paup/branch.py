@@ -66,6 +66,9 @@ class PAUPConfig(CheckedConfig):
     above prune_min_probability are removed."""
     prune_min_probability: float = 0.5
     """m a Gaussian must exceed to be pruned."""
+    prune_after_densification: bool = False
+    """Go on pruning after densification stops (at refine-stop), on its cadence (every refine-every steps),
+    removing floaters only; False: prune at densification events only (the paper: "with densification")."""
 
     def check_options(self) -> None:
         check_number(self, "start", ge=0, integer=True)
@@ -109,6 +112,7 @@ class PAUP(nn.Module):
         """Gaussians that ever existed in the run (initial ones + all densification created)."""
         self.register_buffer("last_pruned", torch.tensor(0, dtype=torch.long))
         self.step = 0
+        self.prunes_after_densification = config.prune_after_densification
         self._filled: tuple[Tensor, Tensor, Tensor, bool] | None = None
         """(U, P, raw U with neutral values, any measured): read several times a step, so kept until the
         statistics change (`update`, `reindex`, loading, a device move)."""

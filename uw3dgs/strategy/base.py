@@ -37,6 +37,9 @@ class ExtraPruning(Protocol):
     """A second pruning criterion run inside density control's events (PAUP), with per-Gaussian state that must
     follow the Gaussians when they are cloned, split or removed."""
 
+    prunes_after_densification: bool
+    """Whether it also prunes on the densification cadence after densification stops (prune-only events)."""
+
     def select(self, step: int) -> Tensor | None:
         """[N] bool: the Gaussians to remove at this event, or None for none."""
         ...

@@ -103,15 +103,22 @@ class DefaultStrategy:
         c = self.config
         return c.refine_start <= step <= self.refine_stop and step % c.refine_every == 0
 
+    def is_late_prune_step(self, step: int) -> bool:
+        """Whether `step` is on the densification cadence after the last densification event: where another
+        criterion (PAUP) may still prune, with nothing grown."""
+        return step > self.refine_stop and step % self.config.refine_every == 0
+
     def step_post_optimizer(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
                             step: int, remove: Tensor | None = None) -> Tensor | None:
         """Densify and prune, or reset opacities, when the schedule says so at `step`. `remove` [N] (bool) names
-        Gaussians another criterion prunes at this event (PAUP's floaters). Returns the event's `origin` map (see
-        `densify_and_prune`), None when nothing changed size."""
+        Gaussians another criterion prunes at this event (PAUP's floaters); outside densification events they are
+        pruned alone. Returns the event's `origin` map (see `densify_and_prune`), None when nothing changed size."""
         c = self.config
         origin = None
         if self.is_refine_step(step):
             origin = self.densify_and_prune(gaussians, optimizers, state, step, remove)
+        elif remove is not None and bool(remove.any()):
+            origin = self.prune(gaussians, optimizers, state, remove)
         if c.reset_opacity_every > 0 and step > 0 and step % c.reset_opacity_every == 0 and step <= self.refine_stop:
             self.reset_opacity(gaussians, optimizers)
         return origin
@@ -154,6 +161,16 @@ class DefaultStrategy:
         origin = torch.cat([torch.arange(n_before, device=keep.device),
                             torch.full((len(keep) - n_before,), -1, dtype=torch.long, device=keep.device)])
         return origin[keep]
+
+    @torch.no_grad()
+    def prune(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
+              remove: Tensor) -> Tensor:
+        """Remove the Gaussians in `remove` [N] (bool) with their optimizer state, nothing else. Returns `origin`
+        [N'] (long), each survivor's index before."""
+        keep = ~remove
+        self._keep(gaussians, optimizers, keep)
+        state.update(self.initialize_state(gaussians))
+        return torch.arange(len(keep), device=keep.device)[keep]
 
     @staticmethod
     def _clone_values(g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:
