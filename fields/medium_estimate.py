@@ -148,7 +148,7 @@ def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
                     dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3, dark_bins: int = 10,
                     dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None,
-                    known: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = True) -> MediumEstimate:
+                    known: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = False) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
@@ -329,7 +329,7 @@ def _bic(mse: Tensor, samples: int, parameters: int) -> Tensor:
 
 
 def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, bins: int = 10,
-               share: float = 0.01, residual: bool = True, rounds: int = 3, steps: int = 300,
+               share: float = 0.01, residual: bool = False, rounds: int = 3, steps: int = 300,
                max_observations: int = 50_000) -> MediumFit:
     """The homogeneous medium of observations color [M, 3] of points point [M] (0..P-1, every value present)
     at ranges z [M] > 0: beta_B (and B_inf unless `b_inf` [3] is given) from the dark pixels, then beta_D; with

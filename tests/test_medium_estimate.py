@@ -149,7 +149,7 @@ def test_the_residual_term_recovers_a_medium_whose_darkest_surfaces_reflect_8_to
     point, color, z = seabed_observations(3000, 8, (3.5, 22.0), (0.08, 0.12), seed=0, medium=DIVE)
     plain = fit_medium(point, color, z, residual=False)
     assert float(plain.beta_b[0]) > 3 * float(DIVE[1][0])
-    fit = fit_medium(point, color, z)
+    fit = fit_medium(point, color, z, residual=True)
     for value, truth in zip(fit.medium, DIVE, strict=True):
         torch.testing.assert_close(value, truth, rtol=0.10, atol=0)
     assert bool((fit.residual > 0.05).all())  # J' ~ the darkest albedo, 0.08-0.12
@@ -166,13 +166,13 @@ def test_the_residual_fit_is_exact_on_exact_samples_and_the_bic_keeps_the_plain_
     torch.testing.assert_close(rj, j_prime, rtol=0, atol=2e-3)
     # near-black dark points (albedo < 0.001): the residual is that small, and the medium within 1% of the truth
     _, point, z, color = underwater_observations(300, 8, (2.0, 12.0), seed=0)
-    fit = fit_medium(point, color, z)
+    fit = fit_medium(point, color, z, residual=True)
     assert float(fit.residual.max()) < 1e-3
     for value, truth in zip(fit.medium, (TRUE_D, TRUE_B, TRUE_BINF), strict=True):
         torch.testing.assert_close(value, truth, rtol=0.01, atol=0)
     # 8-bit samples of black surfaces: the one more parameter does not pay, the plain fit is kept
     color = (color * 255).round() / 255
-    assert torch.equal(fit_medium(point, color, z).residual, torch.zeros(3))
+    assert torch.equal(fit_medium(point, color, z, residual=True).residual, torch.zeros(3))
 
 
 def test_bootstrap_resamples_points_with_all_their_observations():
@@ -191,7 +191,7 @@ def test_the_report_flags_a_narrow_bright_scene_and_passes_a_wide_dark_one():
     the report says so for beta_B and B_inf, before training. The wide scene with black shadows is identifiable."""
     fast = dict(resamples=5, steps=60, max_observations=4000)
     point, color, z = seabed_observations(800, 6, (3.0, 4.0), (0.3, 0.4), seed=1, medium=DIVE)
-    fit = fit_medium(point, color, z)
+    fit = fit_medium(point, color, z, residual=True)
     report = assess_medium(point, color, z, fit, None, 10, 0.01, residual=True, **fast)
     assert all(report.weak("beta_B")) and any(report.weak("B_inf"))
     text = "\n".join(report.lines())
@@ -199,7 +199,7 @@ def test_the_report_flags_a_narrow_bright_scene_and_passes_a_wide_dark_one():
     assert report.to_json()["checks"][3]["name"] == "beta_B"
 
     _, point, z, color = underwater_observations(800, 6, (2.0, 12.0), seed=2)
-    fit = fit_medium(point, color, z, b_inf=TRUE_BINF)
+    fit = fit_medium(point, color, z, b_inf=TRUE_BINF, residual=True)
     report = assess_medium(point, color, z, fit, TRUE_BINF, 10, 0.01, residual=True, **fast)
     assert not any(report.weak("beta_D") + report.weak("beta_B") + report.weak("B_inf")), report.lines()
 
