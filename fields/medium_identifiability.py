@@ -158,15 +158,10 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
         assumption = ((other[k].double() - estimate).abs() / scale).tolist()
         for c in range(3):
             measured = name == "B_inf" and b_inf is not None
-            check = ParameterCheck(name, CHANNELS[c], float(estimate[c]), 0.0 if measured else spread[c],
-                                   0.0 if measured else assumption[c], True, "")
-            check.identifiable = max(check.spread, check.assumption) <= tolerance
-            report.checks.append(check)
-    for check in report.checks:
-        if not check.identifiable:
-            why = [f"bootstrap spread +-{check.spread:.0%}"] if check.spread > tolerance else []
-            if check.assumption > tolerance:
-                why.append(f"{check.assumption:.0%} off if the darkest surfaces are {'' if residual else 'not '}black")
-            check.reason = f"{', '.join(why)} (> {tolerance:.0%}): " + _reason(
-                check.name, CHANNELS.index(check.channel), report)
+            s, a = (0.0, 0.0) if measured else (spread[c], assumption[c])
+            why = [f"bootstrap spread +-{s:.0%}"] if s > tolerance else []
+            if a > tolerance:
+                why.append(f"{a:.0%} off if the darkest surfaces are {'' if residual else 'not '}black")
+            reason = f"{', '.join(why)} (> {tolerance:.0%}): {_reason(name, c, report)}" if why else ""
+            report.checks.append(ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not why, reason))
     return report

@@ -21,6 +21,7 @@ from uw3dgs.datamanagers.synthetic.scene import (
     cache_key,
     generate_scene,
     medium_parameters,
+    underwater_image,
 )
 from uw3dgs.datamanagers.synthetic.water_types import (
     JERLOV_KD,
@@ -166,6 +167,16 @@ def test_underwater_image_follows_the_formation_model(scene_dir):
     assert (np.round(observed[water] * 255) == np.round(B_inf * 255)).all()
     assert (clean[water] == 0).all()
     assert scene.images.std() > 0.02 and scene.gt.clean_images.std() > 0.05  # textured, not flat
+
+
+def test_clear_water_over_open_water_is_black_not_nan():
+    """medium_strength 0 (beta = 0) where a pixel sees open water (t = inf): no light, no veil; 0 x inf is not NaN."""
+    clean = np.array([[[0.0, 0.0, 0.0], [0.5, 0.4, 0.3]]])
+    ranges = np.array([[np.inf, 2.0]])
+    zero, veil = np.zeros(3), np.array([0.05, 0.25, 0.35])
+    np.testing.assert_array_equal(underwater_image(clean, ranges, zero, zero, veil), clean)
+    murky = underwater_image(clean, ranges, np.full(3, 0.3), np.full(3, 0.2), veil)
+    np.testing.assert_allclose(murky[0, 0], veil)
 
 
 def test_dark_patches_show_the_backscatter_alone(scene_dir):

@@ -641,29 +641,22 @@ def pixel_rays(K: np.ndarray, c2w: np.ndarray, width: int, height: int, offsets:
     return ray_directions(K, c2w, u[None] + offsets[:, 0, None, None], v[None] + offsets[:, 1, None, None])
 
 
-def underwater_image(
-    clean: np.ndarray, ranges: np.ndarray, beta_D: np.ndarray, beta_B: np.ndarray, B_inf: np.ndarray
-) -> np.ndarray:
-    """I = J exp(-beta_D t) + B_inf (1 - exp(-beta_B t)); at t = inf only the veiling light B_inf remains."""
-    t = ranges[..., None]
-    return clean * np.exp(-beta_D * t) + B_inf * (1.0 - np.exp(-beta_B * t))
-
-
-def varying_underwater_image(clean: np.ndarray, ranges: np.ndarray, ray_mean: np.ndarray,
-                             medium: dict[str, np.ndarray]) -> np.ndarray:
-    """The formation model with the ray-mean beta of a spatially varying medium: with beta(x) = beta_ref f(x) and
-    m = the mean of f along the ray to range t, I = J exp(-beta_D_ref m t) + B_inf (1 - exp(-beta_B_ref m t)).
-    exp(-beta_D_ref m t) is the exact Beer-Lambert transmittance; the backscatter term is the method's ray-mean model,
-    which is also the exact integral of a source B_inf beta_B(s) attenuated by beta_B on its way back
-    (int_0^t beta_B(s) exp(-int_0^s beta_B) ds = 1 - exp(-int_0^t beta_B)). At t = inf (open water) the optical depth
-    is infinite wherever beta > 0, so only B_inf remains, as in the homogeneous model."""
-    finite = np.isfinite(ranges)[..., None]
-    path = np.where(finite, (ray_mean * np.where(np.isfinite(ranges), ranges, 0.0))[..., None], 0.0)
+def underwater_image(clean: np.ndarray, ranges: np.ndarray, beta_D: np.ndarray, beta_B: np.ndarray, B_inf: np.ndarray,
+                     ray_mean: np.ndarray | None = None) -> np.ndarray:
+    """I = J exp(-beta_D m t) + B_inf (1 - exp(-beta_B m t)) at range t, m the mean of a varying medium's profile
+    factor along the ray (`ray_mean`, same shape as `ranges`; None: 1, a homogeneous medium). exp(-beta_D m t) is the
+    exact Beer-Lambert transmittance; the backscatter term is the method's ray-mean model, which is also the exact
+    integral of a source B_inf beta_B(s) attenuated by beta_B on its way back (int_0^t beta_B(s) exp(-int_0^s
+    beta_B) ds = 1 - exp(-int_0^t beta_B)). At t = inf (open water) the optical depth is infinite wherever beta > 0,
+    so only B_inf remains (and J, which is 0 there, where beta = 0: clear water)."""
+    finite = np.isfinite(ranges)
+    t = np.where(finite, ranges, 0.0)
+    path = (t if ray_mean is None else ray_mean * t)[..., None]
 
     def depth(beta: np.ndarray) -> np.ndarray:
-        return np.where(finite, beta * path, np.where(beta > 0, np.inf, 0.0))
+        return np.where(finite[..., None], beta * path, np.where(beta > 0, np.inf, 0.0))
 
-    return clean * np.exp(-depth(medium["beta_D"])) + medium["B_inf"] * (1.0 - np.exp(-depth(medium["beta_B"])))
+    return clean * np.exp(-depth(beta_D)) + B_inf * (1.0 - np.exp(-depth(beta_B)))
 
 
 def profile_factor(cfg: SyntheticSceneConfig, points: np.ndarray) -> np.ndarray:
@@ -727,11 +720,8 @@ def render_view(
     ranges = t[-1]
     clean8 = _to_uint8(np.where(np.isfinite(ranges)[..., None], clean, 0.0))
     # The underwater image uses the stored 8-bit clean image, so gt/ reproduces it to 8-bit rounding.
-    if cfg.medium_profile == "homogeneous":
-        uw = underwater_image(clean8 / 255.0, ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
-        return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw))
-    ray_mean = ray_mean_factor(cfg, origin, dirs[-1], ranges)
-    uw = varying_underwater_image(clean8 / 255.0, ranges, ray_mean, medium)
+    ray_mean = None if cfg.medium_profile == "homogeneous" else ray_mean_factor(cfg, origin, dirs[-1], ranges)
+    uw = underwater_image(clean8 / 255.0, ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"], ray_mean)
     return RenderedView(c2w, dirs[-1], ranges, clean8, _to_uint8(uw), ray_mean)
 
 
@@ -793,10 +783,10 @@ def add_marine_snow(cfg: SyntheticSceneConfig, view: RenderedView, snow: MarineS
     covers a share a of a pixel (4 x 4 sub-samples, antialiased) and is in front of that pixel's seabed,
     I = (1 - a) I + a I_p, with I_p = J exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) the particle seen through z
     of water. Pixels no particle covers keep the bytes of `view.underwater`."""
-    if view.ray_mean is None:
-        uw = underwater_image(view.clean / 255.0, view.ranges, medium["beta_D"], medium["beta_B"], medium["B_inf"])
-    else:  # a varying medium: each particle is seen through the mean beta along its own ray
-        uw = varying_underwater_image(view.clean / 255.0, view.ranges, view.ray_mean, medium)
+    water = (medium["beta_D"], medium["beta_B"], medium["B_inf"])
+    uw = underwater_image(view.clean / 255.0, view.ranges, *water, view.ray_mean)
+    particle_mean = [None] * len(snow.range)
+    if view.ray_mean is not None:  # a varying medium: each particle is seen through the mean beta along its own ray
         origin = view.c2w[:3, 3]
         particle_mean = ray_mean_factor(cfg, origin, (snow.xyz - origin) / snow.range[:, None], snow.range)
     sub = (np.arange(4) + 0.5) / 4
@@ -810,12 +800,8 @@ def add_marine_snow(cfg: SyntheticSceneConfig, view: RenderedView, snow: MarineS
         inside = np.clip((r - dist) * 4 + 0.5, 0.0, 1.0)  # soft edge over one sub-sample
         cover = inside.reshape(i1 - i0, 4, j1 - j0, 4).mean(axis=(1, 3))
         cover *= view.ranges[i0:i1, j0:j1] > z  # the seabed in front hides it
-        if view.ray_mean is None:
-            radiance = underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
-                                        medium["beta_D"], medium["beta_B"], medium["B_inf"])
-        else:
-            radiance = varying_underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z),
-                                                np.asarray(particle_mean[p]), medium)
+        radiance = underwater_image(np.full(3, cfg.marine_snow_brightness), np.asarray(z), *water,
+                                    None if particle_mean[p] is None else np.asarray(particle_mean[p]))
         a = cover[..., None]
         uw[i0:i1, j0:j1] = np.where(a > 0, (1.0 - a) * uw[i0:i1, j0:j1] + a * radiance, uw[i0:i1, j0:j1])
     return _to_uint8(uw)

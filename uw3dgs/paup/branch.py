@@ -112,7 +112,6 @@ class PAUP(nn.Module):
         """Gaussians that ever existed in the run (initial ones + all densification created)."""
         self.register_buffer("last_pruned", torch.tensor(0, dtype=torch.long))
         self.step = 0
-        self.prunes_after_densification = config.prune_after_densification
         self._filled: tuple[Tensor, Tensor, Tensor, bool] | None = None
         """(U, P, raw U with neutral values, any measured): read several times a step, so kept until the
         statistics change (`update`, `reindex`, loading, a device move)."""
@@ -121,6 +120,10 @@ class PAUP(nn.Module):
 
     def set_step(self, step: int) -> None:
         self.step = step
+
+    @property
+    def prunes_after_densification(self) -> bool:
+        return self.config.prune_after_densification
 
     @property
     def active(self) -> bool:
