@@ -22,8 +22,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.fields.vm_kernel import vm_read
 from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
+from uw3dgs.render import cpu_backend
 
 RGB = tuple[float, float, float]
 # (plane axes, line axis) of TensoRF's three VM modes: XY x Z, XZ x Y, YZ x X
@@ -99,6 +101,10 @@ class MediumGridConfig(MediumFieldConfig):
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
+    kernel: Literal["compiled", "torch"] = "compiled"
+    """How beta_D and beta_B are read: 'compiled' = both fields and their backward in one C++ pass per point on CPU
+    (fields/vm_kernel.py; the same numbers to float rounding; PyTorch on CUDA or where the compiled backend does not
+    build); 'torch' = PyTorch's grid_sample everywhere (the reference; docs/performance.md compares them)."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -143,7 +149,13 @@ class VMField(nn.Module):
         return torch.cat(feats, dim=0)
 
     def forward(self, x: Tensor) -> Tensor:
+        """f at points x [N, 3] in [-1, 1]^3 -> [N, 3], in PyTorch (grid_sample reads): the reference of the
+        compiled kernel (fields/vm_kernel.py), and its path on CUDA."""
         return F.softplus((self.basis @ self.features(x)).T + self.bias)
+
+    def factors(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(planes, lines, basis, bias), as `vm_read` takes a field."""
+        return self.planes, self.lines, self.basis, self.bias
 
     def dense_features(self) -> Tensor:
         """The full [3R, G, G, G] feature grid the factors describe (for tests and inspection)."""
@@ -222,6 +234,8 @@ class MediumGrid(MediumField):
         self.register_buffer("box_min", box_min.float().clone())
         self.register_buffer("box_max", box_max.float().clone())
         args = (config.resolution, config.components, config.beta_prior, config.init_std)
+        self.compiled = config.kernel == "compiled"
+        """Read the fields with the compiled CPU kernel where it applies (a plain attribute: benchmarks switch it)."""
         self.beta_d = VMField(*args)
         self.beta_b = VMField(*args)
         if not config.learn_beta:
@@ -260,6 +274,9 @@ class MediumGrid(MediumField):
 
     def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
         u = self.normalize(x)
+        if self.compiled and cpu_backend.runs_on(u):  # both fields in one pass: they share the points' cell lookups
+            both = vm_read(u, [self.beta_d.factors(), self.beta_b.factors()])
+            return both[:, 0], both[:, 1]
         return self.beta_d(u), self.beta_b(u)
 
     def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:

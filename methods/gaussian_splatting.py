@@ -24,6 +24,7 @@ from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import RasterSettings, rasterize
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig, ExtraPruning
+from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import depth_to_image
 
 COVERAGE_EPS = 1e-4
@@ -105,7 +106,8 @@ class GaussianSplattingModel(Model):
         if depth_weights is not None:  # the weighted depth composites as two more feature channels
             z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
             colors = torch.cat([colors, depth_weights[:, None], (depth_weights * z)[:, None]], dim=-1)
-        out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
+        with section("rasterize"):
+            out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # density control reads the screen-space gradient
         covered = out.alpha > COVERAGE_EPS
@@ -154,7 +156,8 @@ class GaussianSplattingModel(Model):
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         lam = self.config.ssim_lambda
         pred, gt = outputs["rgb"], batch["image"]
-        return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt)}
+        with section("loss: L1 + D-SSIM"):
+            return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt)}
 
     def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
         return {"psnr": float(psnr(outputs["rgb"].detach().clamp(0, 1), batch["image"])),
@@ -179,11 +182,13 @@ class DensityControl(TrainingCallback):
         """Another criterion pruning at the same events (PAUP); its per-Gaussian state follows every change."""
         self.state = strategy.initialize_state(gaussians)
 
+    @section("densification")
     def after_backward(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
         camera = batch["camera"]
         self.strategy.step_post_backward(self.state, step, outputs["means2d"], outputs["radii"],
                                          (camera.width, camera.height))
 
+    @section("densification")
     def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
         extra, strategy = self.extra_pruning, self.strategy
         event = extra is not None and (strategy.is_refine_step(step) or (

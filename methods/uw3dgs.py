@@ -40,6 +40,7 @@ from uw3dgs.render import rasterize
 from uw3dgs.render.sh import rgb_to_sh
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 from uw3dgs.utils.console import info
+from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import apply_colormap, depth_to_image
 
 
@@ -163,9 +164,10 @@ class UW3DGSModel(GaussianSplattingModel):
         if self.medium is None:
             outputs["rgb"] = self.over_background(uri, outputs["alpha"])
             return outputs
-        beta_d, beta_b = self.ray_betas(camera, outputs["range"])
-        formed = form_underwater_image(uri, outputs["alpha"], outputs["range"], beta_d, beta_b, self.medium.b_inf,
-                                       self.dataset_scale)
+        with section("medium"):
+            beta_d, beta_b = self.ray_betas(camera, outputs["range"])
+            formed = form_underwater_image(uri, outputs["alpha"], outputs["range"], beta_d, beta_b,
+                                           self.medium.b_inf, self.dataset_scale)
         outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
                        beta_d=beta_d, beta_b=beta_b)
         return outputs
@@ -177,13 +179,16 @@ class UW3DGSModel(GaussianSplattingModel):
         L_PAPSL trains the scorer alone; and 'pus', 'floater_probability' [N]. Refreshes the statistics first
         when they are due."""
         if self.paup.refresh_due:
-            self.refresh_paup_statistics(camera)
+            with section("PAUP: statistics"):
+                self.refresh_paup_statistics(camera)
             depth_weights = self.depth_weights()
-        pus, m = self.paup.scores()
-        c = self.config.paup
-        keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
         outputs = self.render(camera, depth_weights=depth_weights)
-        outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True, colors=outputs["colors"])["radiance"]
+        with section("PAUP: scores + masked render"):
+            pus, m = self.paup.scores()
+            c = self.config.paup
+            keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
+            outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True,
+                                                  colors=outputs["colors"])["radiance"]
         outputs.update(pus=pus, floater_probability=m)
         return outputs
 
@@ -220,18 +225,19 @@ class UW3DGSModel(GaussianSplattingModel):
     def depth_consistency(self, outputs: dict[str, Any], camera: Camera) -> Tensor:
         """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|,
         in units of the view's median rendered range, weighted by PAUP's (1 - U_i) where it has them (a scalar)."""
-        visible = outputs["radii"] > 0
         weights = self.depth_weights()
-        pix = outputs["means2d"][visible].detach().floor().long()
+        visible = (outputs["radii"] > 0).nonzero().squeeze(1)
+        pix = outputs["means2d"].detach().index_select(0, visible).floor().long()
         inside = (pix[:, 0] >= 0) & (pix[:, 0] < camera.width) & (pix[:, 1] >= 0) & (pix[:, 1] < camera.height)
         if not bool(inside.any()):
             return outputs["range"].sum() * 0.0
-        pix = pix[inside]
-        rendered = outputs["range"][pix[:, 1], pix[:, 0]]
-        own = (self.gaussians.means[visible][inside] - camera.center).norm(dim=-1)
+        # one gather per tensor (index_select, whose backward is an index_add): no boolean-mask copies
+        picked, pix = visible[inside], pix[inside]
+        rendered = outputs["range"].reshape(-1).index_select(0, pix[:, 1] * camera.width + pix[:, 0])
+        own = (self.gaussians.means.index_select(0, picked) - camera.center).norm(dim=-1)
         scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
         error = (rendered - own).abs() / scale
-        return error.mean() if weights is None else (weights[visible][inside] * error).mean()
+        return error.mean() if weights is None else (weights.index_select(0, picked) * error).mean()
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)
@@ -242,12 +248,15 @@ class UW3DGSModel(GaussianSplattingModel):
                 picked = torch.randint(len(means), (c.beta_loss_samples,), device=means.device)
                 means = means[picked]
             weights = self.beta_loss_weights(outputs, picked)
-            losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, weights)
+            with section("loss: L_beta"):
+                losses["beta_loss"] = c.beta_loss_weight * self.medium.regularizer(means, weights)
         if c.depth_loss_weight > 0:
-            losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
+            with section("loss: L_z"):
+                losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
         if "uri_enhanced" in outputs:
-            losses["paup_loss"] = self.paup.loss(outputs["uri"].detach(), outputs["uri_enhanced"],
-                                                 outputs["floater_probability"])
+            with section("loss: L_PAPSL"):
+                losses["paup_loss"] = self.paup.loss(outputs["uri"].detach(), outputs["uri_enhanced"],
+                                                     outputs["floater_probability"])
         return losses
 
     @staticmethod

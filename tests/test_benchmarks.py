@@ -206,7 +206,7 @@ def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3
     monkeypatch.setattr(sys, "argv", ["training_step", str(uw3dgs_run.run_dir / "config.yml"), "--repeats", "1"])
     load_script("training_step").main()
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
-    assert len(rows) == 6 and rows[0].split()[0] == "now"
+    assert len(rows) == 8 and rows[0].split()[0] == "now"
     assert gaussians_module.eval_sh_split is sh and VMField.forward is medium
 
 
@@ -257,3 +257,45 @@ def test_viewer_slowdown_runs_every_setting(tmp_path, cache_dir, tiny_scene_conf
     assert [r["setting"] for r in rows] == ["off", "noclient", "simulated"]
     assert rows[0]["frames"] == 0 and rows[1]["frames"] == 0 and rows[2]["frames"] >= 1
     assert all(r["steps"] == 3 and r["steps_per_s"] > 0 for r in rows)
+
+
+def test_step_profile_attributes_forward_and_backward_to_their_sections():
+    """A hand-made step: the backward of the ops inside a section goes to it (through autograd's sequence numbers),
+    nested sections count for the outermost, and ops outside every section are nobody's."""
+    from torch.profiler import profile
+
+    from uw3dgs.utils.profiling import section
+
+    script = load_script("step_profile")
+    x = torch.randn(200_000, requires_grad=True)
+    with profile() as prof:
+        with section("heavy"):
+            y = torch.sin(x).exp()
+            with section("inner"):  # nested: counted for "heavy"
+                y = y * 3
+        with section("light"):
+            z = y.sum()  # its backward is a view (expand): next to nothing
+        (z + torch.cos(x).sum()).backward()  # cos is in no section
+    times = script.by_section(prof.events())
+    assert set(times) == {"heavy", "light"}
+    assert times["heavy"][0] > 0 and times["heavy"][1] > times["light"][1] > 0
+    # heavy's backward runs sin, exp and mul backward over 200,000 values; nothing of cos's backward is in it
+    assert times["heavy"][1] > 10 * times["light"][1]
+
+
+def test_step_profile_prints_one_table_per_size_for_every_method(uw3dgs_run, monkeypatch, capsys, keep_threads):
+    monkeypatch.setattr(sys, "argv", ["step_profile", str(uw3dgs_run.run_dir / "config.yml"), "--downscales", "1",
+                                      "--sizes", "1.0", "0.5", "--steps", "2"])
+    load_script("step_profile").main()
+    tables = [t.strip() for t in capsys.readouterr().out.split("\n\n") if t.strip().startswith("downscale")]
+    assert len(tables) == 2
+    counts = [int(t.split(" Gaussians")[0].rsplit(" ", 1)[1].replace(",", "")) for t in tables]
+    assert counts == [uw3dgs_run.model.num_gaussians, round(0.5 * uw3dgs_run.model.num_gaussians)]
+    for table in tables:
+        rows = {cells(r)[0]: cells(r)[1:] for r in table.splitlines()[3:]}
+        assert table.splitlines()[1].count("`") == 6  # 3dgs, uw3dgs-no-paup, uw3dgs
+        assert rows["medium"][0] == "-" and rows["medium"][1] != "-" and rows["medium"][2] != "-"
+        assert rows["PAUP: scores + masked render"][:2] == ["-", "-"]
+        assert all(v != "-" for v in rows["rasterize"] + rows["sh colours"] + rows["Adam"])
+        wall = [float(v.strip("*").split("*")[0]) for v in rows["**step, no profiler**"]]
+        assert all(w > 0 for w in wall)

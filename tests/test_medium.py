@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import pytest
 import torch
 import torch.nn.functional as F
 from conftest import tiny_train_config
@@ -11,6 +12,7 @@ from conftest import tiny_train_config
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
+from uw3dgs.fields.vm_kernel import vm_read
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
 
@@ -84,6 +86,88 @@ def test_vm_field_gradients_against_finite_differences():
         return torch.func.functional_call(field, named, (x,))
 
     assert torch.autograd.gradcheck(fn, (x, *params))
+
+
+def kernel_case(dtype, components=16, points=3000, fields=2, seed=0):
+    """Fields with non-flat bases and points inside, on the box's faces and clamped from outside it."""
+    torch.manual_seed(seed)
+    vm = [VMField(resolution=7, components=components, init=(0.1, 0.2, 0.3), init_std=0.5).to(dtype)
+          for _ in range(fields)]
+    for field in vm:
+        torch.nn.init.normal_(field.basis, std=0.5)
+    u = (torch.rand(points, 3, dtype=dtype) * 2.4 - 1.2).clamp(-1, 1)
+    u[:4] = torch.tensor([[1.0, -1.0, 1.0], [-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [0.0, 1.0, -1.0]], dtype=dtype)
+    return vm, u.requires_grad_()
+
+
+def outputs_and_grads(read, vm, u, seed=1):
+    """read(u) [N, F, C], then the gradient of a random weighting of it w.r.t. u and every factor."""
+    params = [p for field in vm for p in field.factors()]
+    for t in (u, *params):
+        t.grad = None
+    out = read(u)
+    weights = torch.randn(out.shape, generator=torch.Generator().manual_seed(seed), dtype=out.dtype)
+    (out * weights).sum().backward()
+    return [out.detach().clone(), u.grad.clone(), *(p.grad.clone() for p in params)]
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize(("components", "fields"), [(16, 2), (3, 1)])
+def test_compiled_vm_read_matches_pytorch(dtype, tolerance, components, fields):
+    """The kernel against VMField.forward (grid_sample): outputs and gradients of points and factors, relative to
+    each tensor's largest value; R = 16 (the unrolled path) and another R, one field and two sharing points."""
+    vm, u = kernel_case(dtype, components, fields=fields)
+    ours = outputs_and_grads(lambda x: vm_read(x, [field.factors() for field in vm]), vm, u)
+    reference = outputs_and_grads(lambda x: torch.stack([field(x) for field in vm], dim=1), vm, u)
+    for a, b in zip(ours, reference, strict=True):
+        assert float((a - b).abs().max() / b.abs().max()) < tolerance
+
+
+def test_compiled_vm_read_gradients_against_finite_differences():
+    vm, _ = kernel_case(torch.float64, components=2, fields=2)
+    x = (torch.rand(6, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_()
+    factors = [p for field in vm for p in field.factors()]
+
+    def fn(x, *values):
+        return vm_read(x, [values[i:i + 4] for i in range(0, len(values), 4)])
+
+    assert torch.autograd.gradcheck(fn, (x, *factors))
+
+
+def test_compiled_vm_read_is_bitwise_deterministic_across_threads():
+    """Factor gradients are summed per fixed chunk of points and the chunks in order: several chunks (N > 16,384),
+    the same bits with 1 and 2 threads and run to run."""
+    vm, u = kernel_case(torch.float32, points=40_000)
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2, 2):
+            torch.set_num_threads(n)
+            runs.append(outputs_and_grads(lambda x: vm_read(x, [field.factors() for field in vm]), vm, u))
+    finally:
+        torch.set_num_threads(threads)
+    for other in runs[1:]:
+        assert all(torch.equal(a, b) for a, b in zip(runs[0], other, strict=True))
+
+
+def test_medium_grid_reads_the_same_betas_compiled_or_not():
+    """`--model.medium.kernel torch` and 'compiled' give the same betas and gradients (float32, to rounding)."""
+    medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3))
+    assert medium.compiled
+    with torch.no_grad():
+        for field in (medium.beta_d, medium.beta_b):
+            torch.nn.init.normal_(field.basis, std=0.3)
+    x = torch.rand(500, 3) * 3 - 1.5  # some outside the box: read at its border
+    results = []
+    for compiled in (True, False):
+        medium.compiled = compiled
+        medium.zero_grad()
+        beta_d, beta_b = medium.betas(x)
+        (beta_d.square().sum() + beta_b.sum()).backward()
+        results.append([beta_d.detach(), beta_b.detach(), *(p.grad.clone() for p in medium.beta_parameters())])
+    for a, b in zip(*results, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+    assert MediumGrid(MediumGridConfig(kernel="torch"), -torch.ones(3), torch.ones(3)).compiled is False
 
 
 def test_field_starts_flat_at_the_prior():

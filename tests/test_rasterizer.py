@@ -11,11 +11,13 @@ import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.render import RasterSettings, rasterize
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.rasterize import BACKENDS, register_backend, select_backend
 from uw3dgs.render.reference import rasterize_reference
-from uw3dgs.render.sh import eval_sh, rgb_to_sh, sh_to_rgb
+from uw3dgs.render.sh import eval_sh, eval_sh_split, rgb_to_sh, sh_to_rgb
+from uw3dgs.render.sh_kernel import sh_colors
 
 F64 = torch.float64
 
@@ -372,6 +374,61 @@ def test_eval_sh_gradients_match_finite_differences() -> None:
         # through the normalisation, as the Gaussians' colours take it (unit directions from free vectors)
         assert torch.autograd.gradcheck(
             lambda d, c, k=degree: eval_sh(k, c, torch.nn.functional.normalize(d, dim=-1)), (dirs, sh))
+
+
+def sh_colour_case(dtype: torch.dtype, n: int = 3000, seed: int = 0):
+    """Gaussians around a camera centre with random degree-3 coefficients; some colours clamp at 0."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g, dtype=dtype).requires_grad_()
+    dc = (0.8 * torch.randn(n, 3, generator=g, dtype=dtype)).requires_grad_()
+    rest = (0.3 * torch.randn(n, 15, 3, generator=g, dtype=dtype)).requires_grad_()
+    return means, torch.tensor([0.3, -0.2, 0.1], dtype=dtype), dc, rest
+
+
+def sh_colours_torch(means, center, dc, rest, degree):
+    return (eval_sh_split(degree, dc, rest, torch.nn.functional.normalize(means - center, dim=-1)) + 0.5).clamp_min(0)
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-13), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_compiled_sh_colours_match_pytorch(dtype, tolerance, degree) -> None:
+    """The kernel against GaussianField's PyTorch expression: colours and the gradients of means and coefficients
+    (those above the degree get zero), relative to each tensor's largest value."""
+    means, center, dc, rest = sh_colour_case(dtype)
+    weights = torch.randn(len(means), 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    results = []
+    for colours in (sh_colours_torch, sh_colors):
+        for t in (means, dc, rest):
+            t.grad = None
+        out = colours(means, center, dc, rest, degree)
+        (out * weights).sum().backward()
+        results.append([out.detach()] + [torch.zeros_like(t) if t.grad is None else t.grad for t in (means, dc, rest)])
+    assert bool((results[1][0] == 0).any())  # the clamp is exercised
+    for a, b in zip(*results, strict=True):
+        assert float((a - b).abs().max()) <= tolerance * max(float(b.abs().max()), 1e-30)
+
+
+def test_compiled_sh_colours_gradients_against_finite_differences() -> None:
+    means, center, dc, rest = sh_colour_case(torch.float64, n=6)
+    with torch.no_grad():
+        dc += 1.0  # away from the clamp's kink
+    assert torch.autograd.gradcheck(lambda m, d, r: sh_colors(m, center, d, r, 3), (means, dc, rest))
+
+
+def test_gaussian_field_colours_compiled_or_torch_agree() -> None:
+    """`--model.gaussians.kernel compiled` (default) and `torch` colour a field the same (float rounding)."""
+    field = GaussianField(GaussianFieldConfig(), torch.randn(500, 3), torch.rand(500, 3))
+    assert field.compiled and not GaussianField(GaussianFieldConfig(kernel="torch"), torch.randn(9, 3),
+                                                torch.rand(9, 3)).compiled
+    with torch.no_grad():
+        field.shN.normal_(std=0.2)
+    field.set_step(10_000)
+    center = torch.tensor([0.0, 0.0, -3.0])
+    colours = []
+    for compiled in (True, False):
+        field.compiled = compiled
+        colours.append(field.colors(center))
+    torch.testing.assert_close(colours[0], colours[1], rtol=1e-5, atol=1e-6)
 
 
 def test_sh_degree_zero_round_trip() -> None:

@@ -1,14 +1,15 @@
-"""The medium's VM fields read at every pixel: channel-major features (uw3dgs) against the row-major form.
+"""The medium's VM fields read at every pixel: the compiled kernel (uw3dgs), PyTorch channel-major, row-major.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/medium_field.py
     python benchmarks/speed/medium_field.py --points 19608
 
 Times forward + backward of beta_D and beta_B at P ray midpoints (`MediumGrid.ray_betas` with S = 1, the
 range differentiable as in training; 19,608 = the 172x114 pixels of IUI3-RedSea at --downscale-factor 8),
-one thread, best of `--repeats`, both ways, and checks they agree. The row-major form, [N, 3R] features
-times the basis (how uw3dgs did it until this benchmark), makes the plane x line products and their
-backward work on transposed, strided data. Whole training steps:
-`benchmarks/speed/training_step.py`.
+one thread, best of `--repeats`, each way, and checks the first and last agree. The row-major form, [N, 3R]
+features times the basis (how uw3dgs did it first), makes the plane x line products and their backward work on
+transposed, strided data; channel-major PyTorch is the reference and the CUDA path; the compiled kernel
+(fields/vm_kernel.py, `--model.medium.kernel compiled`) reads both fields in one C++ pass per point. Whole
+training steps: `benchmarks/speed/training_step.py`, `benchmarks/speed/step_profile.py`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from torch import Tensor
 from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
 
 CHANNEL_MAJOR = VMField.forward
+COMPILED = "compiled"
+"""The way that reads with the compiled kernel (MediumGrid.compiled), VMField.forward left channel-major."""
 
 
 def forward_row_major(field: VMField, x: Tensor) -> Tensor:
@@ -38,12 +41,13 @@ def forward_row_major(field: VMField, x: Tensor) -> Tensor:
     return F.softplus(torch.cat(feats, dim=-1) @ field.basis.T + field.bias)
 
 
-def field_pass(points: int, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
+def field_pass(points: int, compiled: bool, seed: int = 0) -> tuple[Callable[[], None], list[Tensor]]:
     """Forward + backward of both fields at `points` ray midpoints of a random, non-flat medium; the list holds
     the last call's betas and gradients (ranges and every factor)."""
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3))
+    medium.compiled = compiled
     with torch.no_grad():
         for field in (medium.beta_d, medium.beta_b):
             field.basis.normal_(generator=g)
@@ -63,14 +67,15 @@ def field_pass(points: int, seed: int = 0) -> tuple[Callable[[], None], list[Ten
     return run, last
 
 
-def field_pass_with(forward: Callable, n: int) -> tuple[Callable[[], None], list[Tensor]]:
-    VMField.forward = forward
-    return field_pass(n)
+def field_pass_with(way: Callable | str, n: int) -> tuple[Callable[[], None], list[Tensor]]:
+    VMField.forward = CHANNEL_MAJOR if way == COMPILED else way
+    return field_pass(n, compiled=way == COMPILED)
 
 
 def main() -> None:
     compare_cli(__doc__, "--points", 19_608, "beta_D and beta_B at {n} points, forward + backward, R = 16, G = 64, "
-                "1 thread", {"row-major (before)": forward_row_major, "channel-major (uw3dgs)": CHANNEL_MAJOR},
+                "1 thread", {"row-major (first)": forward_row_major, "channel-major PyTorch": CHANNEL_MAJOR,
+                             "compiled kernel (uw3dgs)": COMPILED},
                 field_pass_with)
 
 

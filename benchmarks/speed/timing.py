@@ -100,7 +100,7 @@ def compare_passes(title: str, passes: dict[str, Callable[[], tuple[Callable[[],
                 for a, b in zip(ours_out, base_out, strict=True))
     print(f"{title}:")
     for name, (ms, _) in results.items():
-        print(f"  {name:26s} {ms:8.1f} ms")
+        print(f"  {name:32s} {ms:8.1f} ms")
     print(f"  ratio {base_ms / ours_ms:.2f}x; outputs and gradients agree to {worst:.1e} (relative)")
 
 

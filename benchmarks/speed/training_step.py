@@ -5,11 +5,13 @@
 
 Resumes a copy of the run's latest checkpoint (the run itself is not touched) and times one more training
 step (render, losses, backward, Adam, densification statistics), one thread, best of `--repeats`: as uw3dgs
-does it now, with one change undone at a time, with all three undone, and with the SH colours also back to
-one term per basis function (3DGS's form, the code before `sh_eval.py`). The ways alternate twice, so all
-see the same drift of the machine and of the model. The changes and their microbenchmarks: the SH colours'
-own backward (`sh_eval.py`), the medium's VM fields channel-major (`medium_field.py`; a run without a medium,
-`3dgs`, does not use them, so there that row shows the timing noise), Adam fused (`adam_fused.py`).
+does it now, with one change undone at a time, with all undone, and with the SH colours also back to one term
+per basis function (3DGS's form, the code before `sh_eval.py`). The ways alternate twice, so all see the same
+drift of the machine and of the model. The changes and their microbenchmarks: the SH colours by the compiled
+kernel, and in PyTorch with their own backward (`sh_eval.py`), the medium's VM fields read by the compiled
+kernel, and in PyTorch channel-major
+(`medium_field.py`; a run without a medium, `3dgs`, reads no fields, so there those rows show the timing
+noise), Adam fused (`adam_fused.py`). Where the time of a step goes: `step_profile.py`.
 """
 
 from __future__ import annotations
@@ -29,13 +31,16 @@ from uw3dgs.fields.medium import VMField
 from uw3dgs.render.sh import eval_sh_split
 
 
-def installer(sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR, fused: bool = True
-              ) -> Callable[[Any], None]:
+def installer(sh_compiled: bool = True, sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR,
+              compiled: bool = True, fused: bool = True) -> Callable[[Any], None]:
     """Switch the running trainer to these implementations (a built Adam reads its flag at every step)."""
 
     def install(trainer) -> None:
+        trainer.model.gaussians.compiled = sh_compiled
         gaussians_module.eval_sh_split = sh  # GaussianField.colors calls the module-level name
         VMField.forward = medium
+        if getattr(trainer.model, "medium", None) is not None and hasattr(trainer.model.medium, "compiled"):
+            trainer.model.medium.compiled = compiled
         for optimizer in trainer.optimizers.optimizers.values():
             for group in optimizer.param_groups:
                 group["fused"] = fused
@@ -51,16 +56,19 @@ def main() -> None:
     torch.set_num_threads(1)
     ways = {
         "now": installer(),
-        "SH: autograd's backward": installer(sh=eval_sh_autograd_product),
-        "medium fields row-major": installer(medium=forward_row_major),
+        "SH: PyTorch, not compiled": installer(sh_compiled=False),
+        "SH: PyTorch, autograd's backward": installer(sh_compiled=False, sh=eval_sh_autograd_product),
+        "medium: PyTorch, not compiled": installer(compiled=False),
+        "medium: PyTorch row-major": installer(medium=forward_row_major, compiled=False),
         "Adam per-operation loop": installer(fused=False),
-        "all three undone": installer(sh=eval_sh_autograd_product, medium=forward_row_major, fused=False),
-        "and SH one term per function": installer(sh=eval_sh_per_term, medium=forward_row_major, fused=False),
+        "all undone": installer(False, eval_sh_autograd_product, forward_row_major, compiled=False, fused=False),
+        "and SH one term per function": installer(False, eval_sh_per_term, forward_row_major, compiled=False,
+                                                  fused=False),
     }
     best = time_training_steps(args.config, ways, args.repeats)
     gaussians_module.eval_sh_split, VMField.forward = eval_sh_split, CHANNEL_MAJOR
     for name, ms in best.items():
-        print(f"  {name:28s} {ms:8.1f} ms per step   {ms / best['now']:.2f}x the time of now")
+        print(f"  {name:34s} {ms:8.1f} ms per step   {ms / best['now']:.2f}x the time of now")
 
 
 if __name__ == "__main__":

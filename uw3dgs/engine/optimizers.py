@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from uw3dgs.options import CheckedConfig, OptionError, check_number
+from uw3dgs.utils.profiling import section
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,7 @@ class Optimizers:
         for opt in self.optimizers.values():
             opt.zero_grad(set_to_none=True)
 
+    @section("Adam")
     def step(self) -> None:
         for opt in self.optimizers.values():
             opt.step()

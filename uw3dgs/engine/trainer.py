@@ -42,6 +42,7 @@ from uw3dgs.engine.signals import StopRequests, TrainingInterrupted
 from uw3dgs.engine.writer import EventWriter
 from uw3dgs.models.base import Model
 from uw3dgs.utils.io import remove_temp_files, unwritable_reason, write_json
+from uw3dgs.utils.profiling import section
 
 TRAIN_TIME_FILE = "train_time.json"
 """RUN/train_time.json: the training wall time up to each checkpoint (docs/training.md, "The run folder")."""
@@ -253,7 +254,8 @@ class Trainer:
         for cb in self.callbacks:
             cb.before_step(step)
         self.optimizers.set_step(step)
-        batch = self.datamanager.next_train()
+        with section("data"):
+            batch = self.datamanager.next_train()
         outputs = self.model.get_outputs(batch["camera"])
         losses = self.model.get_loss_dict(outputs, batch, step)
         loss = sum(losses.values())
@@ -270,7 +272,8 @@ class Trainer:
         self.optimizers.step()
         for cb in self.callbacks:
             cb.after_step(step, batch, outputs)
-        metrics = self.model.get_metrics_dict(outputs, batch)
+        with section("metrics"):
+            metrics = self.model.get_metrics_dict(outputs, batch)
         losses = {"loss": loss.detach(), **{k: v.detach() for k, v in losses.items()}}
         return losses, metrics
 

@@ -1,11 +1,13 @@
 """Compiled CPU rasterizer ('cpu' backend): C++/OpenMP projection, binning, compositing and backward.
 
-The C++ source (`csrc/cpu_rasterizer.cpp`) is built the first time the backend is used, with
-`torch.utils.cpp_extension.load` (JIT, ninja + the system C++ compiler), into
-`$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`; `$TORCH_EXTENSIONS_DIR`
-overrides it); later processes reuse the build. It mirrors `reference.py` numerically: same projection,
-opacity-aware radii, (tile, depth) ordering, alpha_min / alpha_max / early-termination rules and
-exp() floor, in float32 or float64. If the build fails (no compiler, ...) the backend warns once and
+The C++ sources (`csrc/cpu_rasterizer.cpp`; `csrc/vm_field.cpp`, the medium's VM field reads of
+`fields/vm_kernel.py`; `csrc/sh_colors.cpp`, the SH colours of `sh_kernel.py`; `csrc/bindings.cpp`) are built as one
+module the first time one of them is used, with
+`torch.utils.cpp_extension.load` (JIT, ninja + the system C++ compiler), into a folder per CPU flag set and
+version of the sources under `$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`;
+`$TORCH_EXTENSIONS_DIR` overrides it); later processes reuse the build. The rasterizer mirrors `reference.py`
+numerically: same projection, opacity-aware radii, (tile, depth) ordering, alpha_min / alpha_max / early-termination
+rules and exp() floor, in float32 or float64. If the build fails (no compiler, ...) the backend warns once and
 falls back to the 'torch' reference.
 
 Two autograd functions keep `means2d` an intermediate of the graph (so `retain_grad()` gives the
@@ -19,6 +21,7 @@ replays exactly those; under `torch.no_grad()` nothing is recorded.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 import threading
@@ -37,7 +40,10 @@ from uw3dgs.render.types import RasterOutput, RasterSettings
 from uw3dgs.utils.console import info
 
 EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
-SOURCE = Path(__file__).parent / "csrc" / "cpu_rasterizer.cpp"
+SOURCES = [Path(__file__).parent / "csrc" / name
+           for name in ("bindings.cpp", "cpu_rasterizer.cpp", "vm_field.cpp", "sh_colors.cpp")]
+"""The rasterizer, the medium's VM field read (fields/vm_kernel.py), the SH colours (render/sh_kernel.py) and their
+Python bindings: one module."""
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
 """-ffp-contract=off: no fused multiply-adds, so results follow the reference's rounding as closely as possible."""
 
@@ -67,14 +73,17 @@ _state: dict[str, object] = {}
 
 
 def build_directory() -> Path:
-    """Where the JIT build goes: $TORCH_EXTENSIONS_DIR, else $UW3DGS_CACHE (or ~/.cache/uw3dgs)/torch_extensions."""
+    """Where the JIT build goes: $TORCH_EXTENSIONS_DIR, else $UW3DGS_CACHE (or ~/.cache/uw3dgs)/torch_extensions;
+    one folder per CPU flag set and version of the sources."""
     if os.environ.get("TORCH_EXTENSIONS_DIR"):
         root = Path(os.environ["TORCH_EXTENSIONS_DIR"])
     else:
         root = default_cache_dir() / "torch_extensions"
     flags = _simd_flags()
     simd = "_avx512" if "-mavx512f" in flags else "_avx2" if flags else ""
-    return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}"
+    # the sources' hash: two checkouts of different versions on one machine never rebuild over each other's module
+    digest = hashlib.sha256(b"".join(path.read_bytes() for path in SOURCES)).hexdigest()[:10]
+    return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}_{digest}"
 
 
 def load_extension(verbose: bool = False) -> ModuleType | None:
@@ -98,7 +107,7 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
                 info(f"building the compiled CPU rasterizer into {directory} (first use, about a minute)")
             module = cpp_extension.load(
                 name=EXTENSION_NAME,
-                sources=[str(SOURCE)],
+                sources=[str(path) for path in SOURCES],
                 extra_cflags=CFLAGS + _simd_flags(),
                 extra_ldflags=["-fopenmp"],
                 build_directory=str(directory),
@@ -121,6 +130,11 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
 def is_available() -> bool:
     """Whether the extension builds / loads on this machine (builds it on first call)."""
     return load_extension() is not None
+
+
+def runs_on(tensor: Tensor) -> bool:
+    """Whether the compiled kernels take this tensor: on the CPU, float32 or float64, and the extension built."""
+    return tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64) and is_available()
 
 
 class _Project(torch.autograd.Function):

@@ -1148,11 +1148,3 @@ int num_threads() {
   return 1;
 #endif
 }
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("project_forward", &project_forward);
-  m.def("project_backward", &project_backward);
-  m.def("composite_forward", &composite_forward);
-  m.def("composite_backward", &composite_backward);
-  m.def("num_threads", &num_threads);
-}

@@ -1,0 +1,46 @@
+// The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
+// (vm_field.cpp) and the Gaussians' SH colours (sh_colors.cpp), built together by uw3dgs/render/cpu_backend.py.
+#include <torch/extension.h>
+
+#include <vector>
+
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                           torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
+                                           int64_t width, int64_t height, double near, double far, double eps2d,
+                                           double alpha_min);
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                            torch::Tensor viewmat, torch::Tensor K, int64_t width, int64_t height,
+                                            double near, double far, double eps2d, torch::Tensor g_means2d,
+                                            torch::Tensor g_conics, torch::Tensor g_depths);
+std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                             torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
+                                             int64_t width, int64_t height, int64_t tile_size, double alpha_min,
+                                             double alpha_max, double t_min, bool for_backward);
+std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                              torch::Tensor feats, int64_t width, int64_t height, int64_t tile_size,
+                                              double alpha_max, std::vector<torch::Tensor> state,
+                                              torch::Tensor grad_render, torch::Tensor grad_depth,
+                                              torch::Tensor grad_alpha, bool all_inputs);
+int num_threads();
+torch::Tensor vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
+                                std::vector<torch::Tensor> basis, std::vector<torch::Tensor> bias);
+std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std::vector<torch::Tensor> planes,
+                                                           std::vector<torch::Tensor> lines,
+                                                           std::vector<torch::Tensor> basis,
+                                                           std::vector<torch::Tensor> bias, torch::Tensor grad_out);
+torch::Tensor sh_colors_forward(torch::Tensor means, torch::Tensor center, torch::Tensor dc, torch::Tensor rest,
+                                int64_t degree);
+std::vector<torch::Tensor> sh_colors_backward(torch::Tensor means, torch::Tensor center, torch::Tensor dc,
+                                              torch::Tensor rest, int64_t degree, torch::Tensor grad);
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("project_forward", &project_forward);
+  m.def("project_backward", &project_backward);
+  m.def("composite_forward", &composite_forward);
+  m.def("composite_backward", &composite_backward);
+  m.def("num_threads", &num_threads);
+  m.def("vm_fields_forward", &vm_fields_forward);
+  m.def("vm_fields_backward", &vm_fields_backward);
+  m.def("sh_colors_forward", &sh_colors_forward);
+  m.def("sh_colors_backward", &sh_colors_backward);
+}
