@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import importlib.util
+import json
 import sys
 from pathlib import Path
 
@@ -299,3 +300,31 @@ def test_step_profile_prints_one_table_per_size_for_every_method(uw3dgs_run, mon
         assert all(v != "-" for v in rows["rasterize"] + rows["sh colours"] + rows["Adam"])
         wall = [float(v.strip("*").split("*")[0]) for v in rows["**step, no profiler**"]]
         assert all(w > 0 for w in wall)
+
+
+def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path, cache_dir, capsys):
+    script = load_script("medium_recovery")
+    argv = ["--steps", "5", "--variants", "default", "plume-homogeneous", "--output-dir", str(tmp_path),
+            "--cache-dir", str(cache_dir), "--scene", "width=48", "--scene", "height=36", "--scene", "num_views=12"]
+    script.main(argv)
+    out = capsys.readouterr().out
+    lines = [line for line in out.splitlines() if line.startswith("|")]
+    table, fields = [cells(r) for r in lines if r.count("|") == 9], [cells(r) for r in lines if r.count("|") == 5]
+    assert table[0] == ["variant", "estimate err % beta_D / beta_B / B_inf (R/G/B)", "with residual term",
+                        "trained err % beta_D / beta_B / B_inf (R/G/B)", "input PSNR", "URI PSNR",
+                        "not identifiable", "bar met"]
+    assert [r[0] for r in table[2:]] == ["default", "plume-homogeneous"]
+    for row in table[2:]:  # three parameters, three channels each, in every error column
+        assert all([len(p.split("/")) for p in cell.split(";")] == [3, 3, 3] for cell in row[1:4])
+        assert float(row[4]) > 0 and float(row[5]) > 0
+    # the varying medium alone gets the field table: the estimate and the trained field, three places each
+    assert [r[:2] for r in fields[2:]] == [["plume-homogeneous", "estimate"], ["plume-homogeneous", "trained"]]
+    assert all(len(cell.split(" / ")) == 3 for r in fields[2:] for cell in r[2:])
+    saved = json.loads((tmp_path / "default" / "row.json").read_text())
+    assert saved["trained"]["errors"]["B_inf"] == pytest.approx(  # B_inf is scored as uw-eval scores it
+        [abs(saved["eval"][f"b_inf_{c}"] - t) / t for c, t in zip("rgb", (0.05, 0.25, 0.35), strict=True)], rel=1e-5)
+    # a flat truth: the field's error at the seabed and along the rays are the same for the (flat) estimate
+    assert saved["estimate"]["errors_ray_mean"]["beta_D"] == pytest.approx(saved["estimate"]["errors"]["beta_D"])
+    (tmp_path / "default" / "estimate.json").unlink()  # a finished variant is read back, not estimated or trained
+    script.main(argv)
+    assert [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")] == lines
