@@ -63,8 +63,9 @@ class MediumFieldConfig(InstantiateConfig):
     """Share of each range bin's observations (the darkest) taken as backscatter alone (surfaces with J ~ 0)."""
     estimate_residual: bool = False
     """'estimate' fits Sea-thru's residual term for dark surfaces that are not black (fields/medium_estimate.py,
-    step 4), where it explains the backscatter samples better. Off by default until the medium-recovery benchmark
-    over scene kinds decides (docs/methods/uw3dgs.md, "Dark is not black")."""
+    step 4), where it explains the backscatter samples better. Off by default: over the medium-recovery benchmark's
+    scene kinds it helps where the darkest surfaces reflect 10-20% and hurts on most water types
+    (docs/medium-recovery.md)."""
     open_water_cells: int = 16
     """'estimate' reads B_inf off open water: image cells (this many across the width) that no initial point
     lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf to the dark observations with beta_B."""
