@@ -4,6 +4,7 @@ starting."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 
@@ -106,6 +107,49 @@ def test_the_monotone_phi_never_falls_as_the_score_rises_whatever_its_parameters
     with torch.no_grad():  # the plain phi's penalty is that of its parameters
         penalty, by_hand = scorer.weight_penalty(), sum(p.square().sum() for p in scorer.phi.parameters())
     assert float(penalty) == pytest.approx(float(by_hand))
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("monotone", [True, False])
+def test_compiled_phi_matches_pytorch(dtype, tolerance, monotone):
+    """The compiled phi (one pass per Gaussian) against the PyTorch path in float64: m and the gradients of the
+    scores and of every weight, relative to each tensor's largest value; bitwise the same with 1 and 2 threads."""
+    torch.manual_seed(0)
+    scorer = FloaterScorer(32, 0.5, 4.0, 2.0, monotone).double()
+    with torch.no_grad():  # units that switch on and off across the scores
+        for p in scorer.phi.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    pus = torch.rand(40_000, dtype=torch.float64) * 8
+    weights = torch.randn(40_000, dtype=torch.float64)
+
+    def run(compiled: bool, dtype: torch.dtype) -> list[torch.Tensor]:
+        model = copy.deepcopy(scorer).to(dtype)
+        model.compiled = compiled
+        x = pus.to(dtype, copy=True).requires_grad_()
+        (model(x) * weights.to(dtype)).sum().backward()
+        return [model(x).detach(), x.grad, *(p.grad for p in model.phi.parameters())]
+
+    reference = run(False, torch.float64)
+    threads, runs = torch.get_num_threads(), []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            runs.append(run(True, dtype))
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(runs[0], reference, strict=True):
+        assert float((a.double() - b).abs().max()) <= tolerance * float(b.abs().max())
+    assert all(torch.equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
+
+
+def test_compiled_phi_gradients_against_finite_differences():
+    from uw3dgs.paup.scorer import _FloaterMLP
+
+    torch.manual_seed(0)
+    x = (torch.rand(20, dtype=torch.float64) * 4).requires_grad_()
+    w1, b1, w2, b2 = (torch.randn(n, dtype=torch.float64, requires_grad=True) for n in (8, 8, 8, 1))
+    assert torch.autograd.gradcheck(_FloaterMLP.apply, (x, w1, b1, w2, b2))
+    assert not PAUP(PAUPConfig(kernel="torch"), 3).scorer.compiled and PAUP(PAUPConfig(), 3).scorer.compiled
 
 
 def test_phi_starts_rising_with_the_score_at_its_stated_midpoint():

@@ -55,6 +55,10 @@ class PAUPConfig(CheckedConfig):
     through either."""
     mask_temperature: float = 0.5
     """Temperature of the "concrete" keep mask (lower: closer to hard 0/1 draws)."""
+    kernel: Literal["compiled", "torch"] = "compiled"
+    """How phi runs over all Gaussians: 'compiled' = one C++ pass per Gaussian with its backward on CPU (no [N, H]
+    hidden layer; PyTorch on CUDA or where the compiled backend does not build); 'torch' = PyTorch everywhere (the
+    reference; the same numbers to float rounding, docs/performance.md)."""
     loss_weight: float = 0.1
     """Weight of L_PAPSL = L1(I_UR, I_UR^Enh) + keep_penalty mean(1 - m) + mlp_penalty ||phi||^2."""
     keep_penalty: float = 0.01
@@ -99,7 +103,7 @@ class PAUP(nn.Module):
         super().__init__()
         self.config = config
         self.scorer = FloaterScorer(config.hidden_units, config.init_score_weight, config.init_floater_score,
-                                    config.init_sharpness, config.monotone_scorer)
+                                    config.init_sharpness, config.monotone_scorer, config.kernel == "compiled")
         self.register_buffer("uncertainty", torch.zeros(num_gaussians))
         self.register_buffer("implausibility", torch.zeros(num_gaussians))
         self.register_buffer("raw_uncertainty", torch.zeros(num_gaussians))

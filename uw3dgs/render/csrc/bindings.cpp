@@ -1,5 +1,6 @@
 // The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
-// (vm_field.cpp) and the Gaussians' SH colours (sh_colors.cpp), built together by uw3dgs/render/cpu_backend.py.
+// (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp) and PAUP's phi (floater_mlp.cpp), built together by
+// uw3dgs/render/cpu_backend.py.
 #include <torch/extension.h>
 
 #include <vector>
@@ -32,6 +33,10 @@ torch::Tensor sh_colors_forward(torch::Tensor means, torch::Tensor center, torch
                                 int64_t degree);
 std::vector<torch::Tensor> sh_colors_backward(torch::Tensor means, torch::Tensor center, torch::Tensor dc,
                                               torch::Tensor rest, int64_t degree, torch::Tensor grad);
+torch::Tensor floater_mlp_forward(torch::Tensor x, torch::Tensor w1, torch::Tensor b1, torch::Tensor w2,
+                                  torch::Tensor b2);
+std::vector<torch::Tensor> floater_mlp_backward(torch::Tensor x, torch::Tensor w1, torch::Tensor b1, torch::Tensor w2,
+                                                torch::Tensor b2, torch::Tensor m, torch::Tensor grad);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward);
@@ -43,4 +48,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("vm_fields_backward", &vm_fields_backward);
   m.def("sh_colors_forward", &sh_colors_forward);
   m.def("sh_colors_backward", &sh_colors_backward);
+  m.def("floater_mlp_forward", &floater_mlp_forward);
+  m.def("floater_mlp_backward", &floater_mlp_backward);
 }
