@@ -6,9 +6,10 @@ import dataclasses
 from pathlib import Path
 
 import pytest
+import yaml
 
 from uw3dgs.cli.train import entrypoint, parse_config
-from uw3dgs.config import config_from_dict, config_to_dict, save_config
+from uw3dgs.config import MOVED_CLASSES, config_from_dict, config_to_dict, load_config, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
@@ -68,6 +69,16 @@ def test_load_config_supplies_defaults_and_flags_override(tmp_path):
     assert (config.max_num_iterations, config.timestamp, config.steps_per_save) == (77, "old", 5)
     assert config.load_config == path
     assert isinstance(config.datamanager, SyntheticDataManagerConfig)
+
+
+def test_a_config_saved_before_a_class_moved_still_loads(tmp_path):
+    """Run folders name config classes by module path; a class that moved (MOVED_CLASSES) loads under its old name."""
+    data = config_to_dict(gaussian_splatting.config)
+    assert data["model"]["densification"]["_type"] in MOVED_CLASSES.values()
+    data["model"]["densification"]["_type"] = "uw3dgs.fields.densification.DensificationConfig"  # before 9255722
+    path = tmp_path / "config.yml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert load_config(path) == gaussian_splatting.config
 
 
 def test_unknown_yaml_key_is_an_error(tmp_path):

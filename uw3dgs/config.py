@@ -107,9 +107,16 @@ def _where(key: str) -> str:
     return f"{key}: " if key else ""
 
 
+MOVED_CLASSES = {
+    "uw3dgs.fields.densification.DensificationConfig": "uw3dgs.strategy.default.DensificationConfig",
+}
+"""Config classes that moved, old name -> new: run folders saved before the move keep loading (and resuming)."""
+
+
 def _import_config_class(qualname: Any, key: str = "") -> type:
     if not isinstance(qualname, str) or "." not in qualname:
         raise ConfigTypeError(f"{_where(key)}_type must name a config class as 'module.Class', got {qualname!r}")
+    qualname = MOVED_CLASSES.get(qualname, qualname)
     module_name, _, cls_name = qualname.rpartition(".")
     # the module's name is checked before anything is imported: a config file cannot run the import-time code of
     # an arbitrary installed module
