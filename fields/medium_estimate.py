@@ -37,11 +37,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+
+if TYPE_CHECKING:  # annotations only: the estimate needs nothing of the data layer or the fields at run time
+    from uw3dgs.data.scene import SceneData
+    from uw3dgs.fields.medium import MediumFieldConfig
 
 
 @dataclass
@@ -176,6 +181,26 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     observed, local = torch.unique(idx, return_inverse=True)
     colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
     return MediumEstimate(*medium, colors, len(fitted), fit, observations)
+
+
+
+def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indices: list[int],
+                        known: tuple[Tensor, Tensor, Tensor] | None = None,
+                        residual: bool | None = None) -> tuple[MediumEstimate, Tensor | None]:
+    """The estimate `--model.medium.init estimate` starts a run from, with the medium `config`'s knobs and the
+    training views `train_indices` of `scene`: B_inf read off open water where the views show it (unless `known`
+    gives the medium), else fitted. `residual` overrides `config.estimate_residual`. Returns the estimate and the
+    open-water colour [3] it used (None: B_inf fitted or known)."""
+    cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
+    water = None
+    if known is None and config.open_water_cells > 0:
+        water = open_water_color(scene.points.float(), cameras, images, config.open_water_cells,
+                                 config.open_water_min_share)
+    estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, float(scene.dataset_scale),
+                               b_inf=water, dark_bins=config.dark_bins, dark_share=config.dark_share,
+                               sfm_cameras=scene.cameras if config.dehaze_unseen_with_all_poses else None,
+                               known=known, residual=config.estimate_residual if residual is None else residual)
+    return estimate, water
 
 
 def clean_colors(point: Tensor, color: Tensor, z: Tensor, beta_d: Tensor, beta_b: Tensor,

@@ -22,7 +22,7 @@ from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
-from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
+from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.methods.gaussian_splatting import (
     COVERAGE_EPS,
     DensityControl,
@@ -99,22 +99,14 @@ class UW3DGSModel(GaussianSplattingModel):
         mc = self.config.medium
         if self.medium is None or mc.init == "prior":
             return
-        cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
-        known, water = None, None
-        if mc.init == "truth":
-            known = scene.gt.medium_tensors()
+        known = scene.gt.medium_tensors() if mc.init == "truth" else None
+        estimate, water = estimate_from_views(mc, scene, train_indices, known=known)
+        if known is not None:
             info("medium: the true one (gt/medium.json), an oracle for analysis")
         else:
-            if mc.open_water_cells > 0:
-                water = open_water_color(scene.points.float(), cameras, images, mc.open_water_cells,
-                                         mc.open_water_min_share)
             source = "fitted (no open water in view)" if water is None else \
                 f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
             info(f"medium estimate: B_inf {source}")
-        estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, self.dataset_scale,
-                                   b_inf=water, dark_bins=mc.dark_bins, dark_share=mc.dark_share,
-                                   sfm_cameras=scene.cameras if mc.dehaze_unseen_with_all_poses else None,
-                                   known=known, residual=mc.estimate_residual)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)

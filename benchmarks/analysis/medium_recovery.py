@@ -37,7 +37,7 @@ from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, beta_field, ray_mean_factor
 from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.evaluator import load_trained
-from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
+from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.fields.medium_identifiability import assess_medium
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
@@ -120,16 +120,10 @@ def estimate_row(scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> 
     the identifiability report of the plain one (the default), and the input's PSNR against the clean test images."""
     knobs = METHODS["uw3dgs"].config.model.medium
     datamanager = SyntheticDataManagerConfig(scene=scene_config, cache_dir=cache_dir).setup(data=None)
-    scene, train = datamanager.scene, datamanager.train_indices
-    cameras, images = [scene.cameras[i] for i in train], [scene.images[i] for i in train]
-    water = open_water_color(scene.points.float(), cameras, images, knobs.open_water_cells,
-                             knobs.open_water_min_share) if knobs.open_water_cells > 0 else None
+    scene = datamanager.scene
     row = {}
     for key, residual in (("estimate", False), ("estimate_residual", True)):
-        est = estimate_medium(scene.points, scene.point_colors, cameras, images, scene.dataset_scale, b_inf=water,
-                              dark_bins=knobs.dark_bins, dark_share=knobs.dark_share,
-                              sfm_cameras=scene.cameras if knobs.dehaze_unseen_with_all_poses else None,
-                              residual=residual)
+        est, water = estimate_from_views(knobs, scene, datamanager.train_indices, residual=residual)
         medium = {"beta_d": est.beta_d.tolist(), "beta_b": est.beta_b.tolist(), "b_inf": est.b_inf.tolist()}
 
         def flat(camera, ranges, e=est):
