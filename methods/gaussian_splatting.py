@@ -22,7 +22,7 @@ from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render import RasterOutput, RasterSettings, rasterize
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig, ExtraPruning
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import depth_to_image
@@ -80,20 +80,23 @@ class GaussianSplattingModel(Model):
         return torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=device)
 
     def render(self, camera: Camera, keep: Tensor | None = None, depth_weights: Tensor | None = None,
-               frozen: bool = False, colors: Tensor | None = None) -> dict[str, Any]:
+               frozen: bool = False, colors: Tensor | None = None,
+               projection: RasterOutput | None = None) -> dict[str, Any]:
         """Rasterize the Gaussians' view-dependent colours seen from `camera`, no background:
         'radiance' [H, W, 3] = sum_i w_i c_i; 'alpha' [H, W] coverage; 'depth' [H, W] expected camera-space z of
         the covered part (0 where uncovered); 'range' [H, W] the same along the ray from the camera centre
         (world units; the scene's far bound where uncovered: open water); 'means2d' [N, 2] pixel centres
         (their gradient is kept for density control while training); 'radii' [N] pixels, 0 = not visible;
         'weight_sum' [N] each Gaussian's blending weights summed over the image and 'pixel_count' [N] the pixels it
-        was blended into (no gradient); 'colors' [N, 3] the view-dependent colours it rendered.
+        was blended into (no gradient); 'colors' [N, 3] the view-dependent colours it rendered; 'raster' the
+        rasterizer's `RasterOutput`.
 
         `keep` [N] in [0, 1] scales the opacities (PAUP's relaxed keep mask). `depth_weights` [N] >= 0 weight each
         Gaussian's share of the depth (the paper's (1 - U_i)): depth = sum_i w_i d_i z_i / sum_i w_i d_i, the
         unweighted depth where a covered pixel's weights sum to nothing. `frozen` renders the Gaussians detached:
         gradients reach `keep` and `depth_weights` only. `colors` [N, 3]: the colours seen from `camera` when the
-        caller has them (a second render of the same view), else computed."""
+        caller has them (a second render of the same view), else computed. `projection`: the 'raster' of an
+        earlier render of this view with opacities at least these, reused by a `frozen` render (`rasterize`)."""
         with torch.set_grad_enabled(torch.is_grad_enabled() and not frozen):
             means, scales, quats, opacities = self.gaussians.activated()
             if colors is None:
@@ -107,7 +110,7 @@ class GaussianSplattingModel(Model):
             z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
             colors = torch.cat([colors, depth_weights[:, None], (depth_weights * z)[:, None]], dim=-1)
         with section("rasterize"):
-            out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster)
+            out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster, projection)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # density control reads the screen-space gradient
         covered = out.alpha > COVERAGE_EPS
@@ -119,7 +122,7 @@ class GaussianSplattingModel(Model):
         ranges = torch.where(covered, depth * camera.ray_norms(), torch.full_like(depth, self.far_range))
         return {"radiance": radiance, "alpha": out.alpha, "depth": depth, "range": ranges,
                 "means2d": out.means2d, "radii": out.radii, "weight_sum": out.weight_sum,
-                "pixel_count": out.pixel_count, "colors": rendered}
+                "pixel_count": out.pixel_count, "colors": rendered, "raster": out}
 
     def over_background(self, radiance: Tensor, alpha: Tensor) -> Tensor:
         """`radiance` [H, W, 3] composited over the background colour where `alpha` [H, W] leaves it visible."""

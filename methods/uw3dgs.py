@@ -179,8 +179,9 @@ class UW3DGSModel(GaussianSplattingModel):
             pus, m = self.paup.scores()
             c = self.config.paup
             keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
-            outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True,
-                                                  colors=outputs["colors"])["radiance"]
+            # the same view and geometry with opacities scaled down: the full render's projection holds
+            outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True, colors=outputs["colors"],
+                                                  projection=outputs["raster"])["radiance"]
         outputs.update(pus=pus, floater_probability=m)
         return outputs
 

@@ -12,7 +12,7 @@ from torch import Tensor
 
 from uw3dgs.cameras import Camera
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
-from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render import RasterSettings, cpu_backend, rasterize
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.rasterize import BACKENDS, register_backend, select_backend
 from uw3dgs.render.reference import rasterize_reference
@@ -61,7 +61,7 @@ def assert_close_rel(actual: Tensor, expected: Tensor, dtype: torch.dtype, name:
 
 def assert_matches_reference(out, grads, ref, ref_grads, dtype: torch.dtype) -> None:
     """Every output of a backend and every gradient equal the reference's (integers exactly)."""
-    for name in ("render", "alpha", "depth", "means2d", "depths", "weight_sum"):
+    for name in ("render", "alpha", "depth", "means2d", "depths", "conics", "weight_sum"):
         got, want = getattr(out, name), getattr(ref, name)
         assert got.dtype == want.dtype and got.shape == want.shape, name
         assert_close_rel(got.detach(), want.detach(), dtype, name)
@@ -334,6 +334,40 @@ def test_projection_culls_behind_off_screen_and_faint() -> None:
                              RasterSettings(backend="torch"))  # fmt: skip
     assert proj.valid.tolist() == [False, False, False, True, False]
     assert (proj.radii[~proj.valid] == 0).all() and proj.radii.dtype == torch.int32
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: torch.dtype) -> None:
+    """PAUP's masked render: the same view with the opacities scaled down (some below alpha_min, so culled by a
+    fresh projection) gives the same render and opacity gradient with the full render's projection: bitwise in
+    the compiled backend, to rounding in the reference (its tiles' padded Gaussian lists grow)."""
+    if backend == "cpu" and not cpu_backend.is_available():
+        pytest.skip("the compiled backend does not build here")
+    scene = random_scene(5, 400)
+    settings = RasterSettings(backend=backend)
+    means, quats, scales, opacities, features = (t.to(dtype) for t in scene.inputs())
+    full = rasterize(means, quats, scales, opacities, features, scene.camera, settings)
+    keep = torch.rand(len(means), generator=torch.Generator().manual_seed(0), dtype=dtype)
+    keep[:50] = 1e-4  # opacity x keep < alpha_min
+    weights = torch.randn(full.render.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+
+    def masked(**reuse) -> tuple[Tensor, Tensor]:
+        scaled = keep.clone().requires_grad_(True)
+        out = rasterize(means, quats, scales, opacities * scaled, features, scene.camera, settings, **reuse)
+        (out.render * weights).sum().backward()
+        return out.render.detach(), scaled.grad
+
+    fresh, reused = masked(), masked(projection=full)
+    assert fresh[0].abs().sum() > 0 and fresh[1].abs().sum() > 0
+    for got, want, name in zip(reused, fresh, ("render", "grad opacities"), strict=True):
+        if backend == "cpu":
+            assert torch.equal(got, want), name
+        else:
+            assert_close_rel(got, want, dtype, name)
+    with pytest.raises(ValueError, match="no gradient to means"):
+        rasterize(means.clone().requires_grad_(True), quats, scales, opacities, features, scene.camera, settings,
+                  projection=full)
 
 
 def _sh_direct(l: int, m: int, d: Tensor) -> Tensor:

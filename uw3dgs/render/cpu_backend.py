@@ -210,21 +210,27 @@ def rasterize_cpu(
     width: int,
     height: int,
     settings: RasterSettings,
+    projection: RasterOutput | None = None,
 ) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, compiled ('cpu' backend)."""
     unsupported = means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)
     if unsupported or settings.tile_size > MAX_TILE or load_extension() is None:
-        return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings)
+        return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings,
+                                   projection)
     dtype = means.dtype
-    means, quats, scales, opacities, features = (
-        t.to(dtype).contiguous() for t in (means, quats, scales, opacities, features)
-    )
-    viewmat = viewmat.detach().to(dtype).contiguous()
-    K = K.detach().to(dtype).contiguous()
-    # the projection reads the opacities for the radii only (no gradient): detached, a render whose Gaussians are
-    # frozen but whose opacities carry one (PAUP's masked render) runs no projection backward
-    means2d, conics, depths, radii = _Project.apply(means, quats, scales, opacities.detach(), viewmat, K, width,
-                                                    height, settings)  # fmt: skip
+    opacities, features = (t.to(dtype).contiguous() for t in (opacities, features))
+    if projection is not None:
+        means2d, conics, depths = (t.detach().to(dtype).contiguous()
+                                   for t in (projection.means2d, projection.conics, projection.depths))
+        radii = projection.radii.contiguous()
+    else:
+        means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
+        viewmat = viewmat.detach().to(dtype).contiguous()
+        K = K.detach().to(dtype).contiguous()
+        # the projection reads the opacities for the radii only (no gradient): detached, a render whose Gaussians
+        # are frozen but whose opacities carry one (PAUP's masked render) runs no projection backward
+        means2d, conics, depths, radii = _Project.apply(means, quats, scales, opacities.detach(), viewmat, K, width,
+                                                        height, settings)  # fmt: skip
     feats = torch.cat([features, depths[:, None]], dim=1)  # depth composites like a feature
     # Separate render / depth / alpha outputs: no slicing, so no zero-fill + copy ops in the backward.
     render, depth, alpha, weight_sum, pixel_count = _Composite.apply(
@@ -237,6 +243,7 @@ def rasterize_cpu(
         means2d=means2d,
         radii=radii,
         depths=depths,
+        conics=conics,
         weight_sum=weight_sum,
         pixel_count=pixel_count,
     )

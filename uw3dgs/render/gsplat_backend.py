@@ -84,7 +84,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.render.projection import Projection, project_gaussians
+from uw3dgs.render.projection import Projection, project_gaussians, reused_projection
 from uw3dgs.render.reference import EXP_FLOOR, rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
 from uw3dgs.utils.console import warn
@@ -445,6 +445,7 @@ def rasterize_gsplat(
     width: int,
     height: int,
     settings: RasterSettings,
+    projection: RasterOutput | None = None,
     kernels: Kernels | None = None,
 ) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, with gsplat's kernels ('gsplat' backend).
@@ -461,9 +462,13 @@ def rasterize_gsplat(
             )
         kernels = load_kernels()
         if kernels is None:
-            return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings)
+            return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings,
+                                       projection)
 
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
+    if projection is not None:
+        proj = reused_projection(projection)
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
     tiles = _bin(proj, width, height, min(settings.tile_size, MAX_TILE), kernels)
     feats = torch.cat([features, proj.depths[:, None]], dim=1)  # depth composites like a feature
     dtype = torch.promote_types(torch.promote_types(proj.means2d.dtype, opacities.dtype), feats.dtype)
@@ -487,6 +492,7 @@ def rasterize_gsplat(
         means2d=proj.means2d,
         radii=proj.radii,
         depths=proj.depths,
+        conics=proj.conics,
         weight_sum=weight_sum,
         pixel_count=pixel_count,
     )

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.render.types import RasterSettings
+from uw3dgs.render.types import RasterOutput, RasterSettings
 
 FOV_CLAMP = 1.3
 """The Jacobian is evaluated at most this many half-fields-of-view off-axis, as in 3DGS."""
@@ -33,6 +33,13 @@ class Projection:
     """[N] int32 half-side of the screen-space bounding square in pixels; 0 for culled Gaussians."""
     valid: Tensor
     """[N] bool, radii > 0: in the depth range, visible above alpha_min and overlapping the image."""
+
+
+def reused_projection(raster: RasterOutput) -> Projection:
+    """The screen-space Gaussians of an earlier render (detached), for a render of the same view and geometry."""
+    radii = raster.radii
+    return Projection(means2d=raster.means2d.detach(), conics=raster.conics.detach(), depths=raster.depths.detach(),
+                      radii=radii, valid=radii > 0)
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:

@@ -20,7 +20,7 @@ from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
 
 RasterFn = Callable[..., RasterOutput]
-"""(means, quats, scales, opacities, features, viewmat, K, width, height, settings) -> RasterOutput."""
+"""(means, quats, scales, opacities, features, viewmat, K, width, height, settings, projection) -> RasterOutput."""
 
 
 @dataclass(frozen=True)
@@ -72,16 +72,26 @@ def rasterize(
     features: Tensor,
     camera: Camera,
     settings: RasterSettings = RasterSettings(),
+    projection: RasterOutput | None = None,
 ) -> RasterOutput:
     """Render one view of activated Gaussians (see `rasterize_reference` for shapes and conventions).
 
     means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (exp'd), opacities [N] (sigmoid'd),
     features [N, C]. Returns a [H, W, C] render and [H, W] alpha and depth, with no background:
     compose with render + (1 - alpha[..., None]) * background.
+
+    `projection`: an earlier render of the same Gaussians (means, quats, scales) from the same camera whose
+    opacities were at least these, e.g. the full render before PAUP's masked one. Its screen-space Gaussians
+    are used as they are instead of projecting again; the outputs are the same as without it (its radii, from
+    the larger opacities, bound the footprints, and every pixel is still tested against `opacities`), but no
+    gradient reaches means, quats or scales, so they must not require one.
     """
+    if projection is not None and any(t.requires_grad for t in (means, quats, scales)):
+        raise ValueError("a reused projection carries no gradient to means, quats or scales: render them detached "
+                         "(frozen) or without `projection`")
     backend = BACKENDS[select_backend(settings.backend, means.device)]
     view = (camera.viewmat, camera.K, camera.width, camera.height)
-    return backend(means, quats, scales, opacities, features, *view, settings)
+    return backend(means, quats, scales, opacities, features, *view, settings, projection)
 
 
 register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), priority=0)

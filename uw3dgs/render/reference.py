@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from uw3dgs.render.projection import Projection, project_gaussians
+from uw3dgs.render.projection import Projection, project_gaussians, reused_projection
 from uw3dgs.render.types import RasterOutput, RasterSettings
 
 CHUNK_ELEMENTS = 1 << 20
@@ -319,14 +319,18 @@ def rasterize_reference(
     width: int,
     height: int,
     settings: RasterSettings,
+    projection: RasterOutput | None = None,
 ) -> RasterOutput:
     """Render [N, C] per-Gaussian features into one view ('torch' backend).
 
     Inputs are activated: scales exp'd, opacities sigmoid'd, quats (w, x, y, z) any norm.
     Outputs are a [H, W, C] render and [H, W] alpha and depth, not composed over any background
-    (callers add (1 - alpha[..., None]) * background).
+    (callers add (1 - alpha[..., None]) * background). `projection`: see `uw3dgs.render.rasterize`.
     """
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
+    if projection is not None:
+        proj = reused_projection(projection)
+    else:
+        proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
     bins = bin_gaussians(proj, width, height, settings.tile_size)
     feats = torch.cat([features, proj.depths[:, None]], dim=1)  # depth composites like a feature
     image, weight_sum, pixel_count = _CompositeTiles.apply(
@@ -340,6 +344,7 @@ def rasterize_reference(
         means2d=proj.means2d,
         radii=proj.radii,
         depths=proj.depths,
+        conics=proj.conics,
         weight_sum=weight_sum,
         pixel_count=pixel_count,
     )

@@ -52,13 +52,15 @@ class RasterOutput:
     (divide by `alpha` for the expected depth). Per Gaussian (N): `means2d` is the projected centre in
     pixels and is part of the autograd graph (call `retain_grad()` before backward for the
     screen-space gradient used by densification); `radii` is the screen radius in pixels (0 = culled);
-    `depths` the camera-space z; `weight_sum` the sum of the Gaussian's blending weights over the
-    view's pixels and `pixel_count` the number of pixels it was blended into (both without gradient).
+    `depths` the camera-space z; `conics` the entries (a, b, c) of the inverse 2D covariance [[a, b], [b, c]];
+    `weight_sum` the sum of the Gaussian's blending weights over the view's pixels and `pixel_count` the
+    number of pixels it was blended into (both without gradient). A later render of the same view may reuse
+    means2d, conics, depths and radii (`rasterize`'s `projection`).
 
     Shapes and types: render [H, W, C]; alpha and depth [H, W]; means2d [N, 2] in pixels, where
     pixel (u, v) has its centre at (u + 0.5, v + 0.5) and a point projects to (fx x/z + cx, fy y/z + cy);
-    radii and pixel_count int32; depths and weight_sum in the input dtype. Nothing is composed over a
-    background: callers add (1 - alpha[..., None]) * background.
+    conics [N, 3] in pixels^-2; radii and pixel_count int32; depths and weight_sum in the input dtype.
+    Nothing is composed over a background: callers add (1 - alpha[..., None]) * background.
     """
 
     render: Tensor
@@ -67,5 +69,6 @@ class RasterOutput:
     means2d: Tensor
     radii: Tensor
     depths: Tensor
+    conics: Tensor
     weight_sum: Tensor
     pixel_count: Tensor
