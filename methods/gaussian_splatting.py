@@ -42,6 +42,11 @@ class GaussianSplattingModelConfig(ModelConfig):
     raster: RasterSettings = field(default_factory=RasterSettings)
     ssim_lambda: float = 0.2
     """Image loss = (1 - ssim_lambda) L1 + ssim_lambda D-SSIM."""
+    ssim_kernel: Literal["compiled", "torch"] = "compiled"
+    """How the D-SSIM loss computes SSIM: 'compiled' = one C++ pass set with its backward on CPU
+    (uw3dgs/metrics/ssim_kernel.py; the same numbers to float rounding; PyTorch on CUDA or where the compiled backend
+    does not build); 'torch' = PyTorch's separable convolutions everywhere (the reference; evaluation always uses
+    it)."""
     background: Literal["black", "white", "random"] = "black"
     """Colour behind the Gaussians; 'random' draws one per training step (evaluation uses black)."""
 
@@ -160,7 +165,7 @@ class GaussianSplattingModel(Model):
         lam = self.config.ssim_lambda
         pred, gt = outputs["rgb"], batch["image"]
         with section("loss: L1 + D-SSIM"):
-            return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt)}
+            return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt, self.config.ssim_kernel)}
 
     def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
         return {"psnr": float(psnr(outputs["rgb"].detach().clamp(0, 1), batch["image"])),

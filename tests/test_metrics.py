@@ -9,6 +9,7 @@ from scipy.ndimage import correlate
 
 from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import MSE_FLOOR, dssim_loss, l1_loss, psnr, ssim
+from uw3dgs.render import cpu_backend
 
 
 def reference_ssim(pred: np.ndarray, gt: np.ndarray) -> float:
@@ -133,6 +134,64 @@ def test_ssim_gradient_matches_finite_differences(single_thread):
     pred.requires_grad_(True)
     gt.requires_grad_(True)
     assert torch.autograd.gradcheck(ssim, (pred, gt), eps=1e-6, atol=1e-5)
+
+
+compiled_ssim = pytest.mark.skipif(not cpu_backend.is_available(), reason="the compiled backend does not build here")
+
+
+@compiled_ssim
+@pytest.mark.parametrize("shape", [(2, 17, 23, 3), (1, 6, 4, 3), (1, 30, 12, 1)])
+def test_compiled_ssim_matches_brute_force_reference(shape):
+    pred, gt = random_pair(shape, noise=0.1, seed=shape[1])
+    expected = [reference_ssim(p, g) for p, g in zip(pred.numpy(), gt.numpy(), strict=True)]
+    np.testing.assert_allclose(ssim(pred, gt, "compiled").numpy(), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ssim(pred.float(), gt.float(), "compiled").numpy(), expected, rtol=0, atol=2e-5)
+    assert ssim(pred[0], gt[0], "compiled").shape == ()
+
+
+@compiled_ssim
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_compiled_ssim_gradient_matches_pytorch(dtype, tolerance):
+    pred, gt = random_pair((2, 19, 26, 3), noise=0.15, seed=4)
+    grads = {}
+    for kernel in ("torch", "compiled"):
+        p = pred.to(dtype).requires_grad_(True)
+        dssim_loss(p, gt.to(dtype), kernel).backward()
+        grads[kernel] = p.grad
+    scale = grads["torch"].abs().max()
+    assert scale > 0
+    torch.testing.assert_close(grads["compiled"], grads["torch"], rtol=tolerance, atol=tolerance * scale)
+
+
+@compiled_ssim
+def test_compiled_ssim_gradient_matches_finite_differences(single_thread):
+    pred, gt = random_pair((1, 6, 7, 3), noise=0.2)
+    pred.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: ssim(p, gt, "compiled"), (pred,), eps=1e-6, atol=1e-5)
+
+
+@compiled_ssim
+def test_compiled_ssim_is_bitwise_the_same_on_one_and_two_threads():
+    pred, gt = random_pair((1, 40, 33, 3), noise=0.1)
+    results = []
+    threads = torch.get_num_threads()
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            p = pred.float().requires_grad_(True)
+            value = ssim(p, gt.float(), "compiled")
+            value.sum().backward()
+            results.append((value.detach(), p.grad))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(*results, strict=True))
+
+
+def test_compiled_ssim_leaves_a_gt_that_needs_a_gradient_to_pytorch():
+    pred, gt = random_pair((1, 9, 9, 3), noise=0.1)
+    gt.requires_grad_(True)
+    ssim(pred, gt, "compiled").backward()
+    assert gt.grad is not None and gt.grad.abs().sum() > 0
 
 
 def test_losses():

@@ -1,6 +1,6 @@
 // The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
-// (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp) and PAUP's phi (floater_mlp.cpp), built together by
-// uw3dgs/render/cpu_backend.py.
+// (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp), PAUP's phi (floater_mlp.cpp) and the D-SSIM loss's SSIM
+// (ssim.cpp), built together by uw3dgs/render/cpu_backend.py.
 #include <torch/extension.h>
 
 #include <vector>
@@ -37,6 +37,10 @@ torch::Tensor floater_mlp_forward(torch::Tensor x, torch::Tensor w1, torch::Tens
                                   torch::Tensor b2);
 std::vector<torch::Tensor> floater_mlp_backward(torch::Tensor x, torch::Tensor w1, torch::Tensor b1, torch::Tensor w2,
                                                 torch::Tensor b2, torch::Tensor m, torch::Tensor grad);
+std::vector<torch::Tensor> ssim_forward(torch::Tensor pred, torch::Tensor gt, torch::Tensor taps, double c1,
+                                        double c2, bool need_grad);
+torch::Tensor ssim_backward(torch::Tensor pred, torch::Tensor gt, torch::Tensor grads, torch::Tensor taps,
+                            torch::Tensor grad_sum);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward);
@@ -50,4 +54,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("sh_colors_backward", &sh_colors_backward);
   m.def("floater_mlp_forward", &floater_mlp_forward);
   m.def("floater_mlp_backward", &floater_mlp_backward);
+  m.def("ssim_forward", &ssim_forward);
+  m.def("ssim_backward", &ssim_backward);
 }
