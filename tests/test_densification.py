@@ -105,6 +105,7 @@ def test_statistics_are_ndc_gradient_norms_and_largest_screen_radii():
     field, _, strategy, state = make(refine_stop=100)
     means2d = torch.zeros(4, 2, requires_grad=True)
     (means2d * torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [7.0, 8.0]])).sum().backward()
+    means2d.grad[1] = float("nan")  # whatever an invisible Gaussian's gradient holds, it is not read
     radii = torch.tensor([2, 0, 8, 4])
     for radius_scale in (1, 2):
         strategy.step_post_backward(state, 10, means2d, radii * radius_scale, (40, 20))

@@ -91,10 +91,13 @@ class DefaultStrategy:
         visible = radii > 0
         # 3DGS thresholds the gradient with respect to NDC coordinates: d/d(ndc) = d/d(pixel) * size / 2
         grad = means2d.grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d.device)
-        state["grad_accum"][visible] += grad[visible].norm(dim=-1)
-        state["visible_count"][visible] += 1
+        # whole-array updates that add 0 (and take the maximum with 0) where not visible: the same numbers as
+        # updating the visible entries through boolean indexing, without its gathers and scatters
+        zero = grad.new_zeros(())
+        state["grad_accum"] += torch.where(visible, grad.norm(dim=-1), zero)
+        state["visible_count"] += visible
         radius = radii.detach().float() / max(width, height)
-        state["max_radii"][visible] = torch.maximum(state["max_radii"][visible], radius[visible])
+        torch.maximum(state["max_radii"], torch.where(visible, radius, zero), out=state["max_radii"])
 
     # -- events --
 
