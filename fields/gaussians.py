@@ -105,9 +105,10 @@ class GaussianField(nn.Module):
             return (eval_sh_split(degree, self.sh0[:, 0], self.shN, dirs) + 0.5).clamp_min(0.0)
 
     def activated(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """(means, scales, unit quaternions, opacities) as the rasterizer takes them."""
-        return (self.means, torch.exp(self.scales), torch.nn.functional.normalize(self.quats, dim=-1),
-                torch.sigmoid(self.opacities))
+        """(means, scales, quaternions, opacities) as the rasterizer takes them. The quaternions (w, x, y, z) are the
+        parameters as they are, not normalised: every backend normalises them itself, with the gradient through
+        it, so normalising here too would only add passes over N x 4 values and their backward."""
+        return self.means, torch.exp(self.scales), self.quats, torch.sigmoid(self.opacities)
 
     def set_params(self, values: dict[str, Tensor]) -> dict[str, tuple[nn.Parameter, nn.Parameter]]:
         """Replace parameters by new tensors (densification); returns name -> (old, new) for the optimizer."""

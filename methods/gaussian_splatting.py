@@ -106,8 +106,8 @@ class GaussianSplattingModel(Model):
             means, scales, quats, opacities = self.gaussians.activated()
             if colors is None:
                 colors = self.gaussians.colors(camera.center)
-        if frozen:
-            means, colors = means.detach(), colors.detach()  # parameters or given: no_grad leaves them attached
+        if frozen:  # parameters or given: no_grad leaves them attached
+            means, quats, colors = means.detach(), quats.detach(), colors.detach()
         rendered = colors
         if keep is not None:
             opacities = opacities * keep
