@@ -123,6 +123,19 @@ def test_compiled_vm_read_matches_pytorch(dtype, tolerance, components, fields):
         assert float((a - b).abs().max() / b.abs().max()) < tolerance
 
 
+def test_compiled_vm_read_softplus_over_the_whole_range():
+    """The float kernel's own softplus (no libm) against float64 softplus for pre-activations from -87 to 30 (the
+    bias alone, the factors zero): within 3e-7 relative, x itself above PyTorch's threshold of 20."""
+    pre = torch.linspace(-87.0, 30.0, 3000, dtype=torch.float64)
+    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0) for _ in range(pre.numel() // 3)]
+    for field, bias in zip(vm, pre.view(-1, 3), strict=True):
+        with torch.no_grad():
+            field.bias.copy_(bias)
+    got = vm_read(torch.zeros(1, 3), [field.factors() for field in vm]).detach().reshape(-1).double()
+    want = torch.nn.functional.softplus(pre.float().double())
+    assert float(((got - want).abs() / want).max()) < 3e-7
+
+
 def test_compiled_vm_read_gradients_against_finite_differences():
     vm, _ = kernel_case(torch.float64, components=2, fields=2)
     x = (torch.rand(6, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_()
