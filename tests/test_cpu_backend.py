@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
@@ -169,3 +176,32 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch: pytest.MonkeyPatch)
     assert len(messages) == 1 and "no C++ compiler" in messages[0] and "falling back" in messages[0]
     ref = rasterize_reference(*scene.inputs(), scene.camera.viewmat, scene.camera.K, 40, 30, RasterSettings())
     assert torch.equal(out.render, ref.render)
+
+
+def test_a_build_lock_left_by_a_killed_build_is_removed_and_a_live_one_waited_for(tmp_path: Path) -> None:
+    """torch waits for ever on the `lock` of a build that was killed; the backend's own lock names its process, so
+    a lock whose process is gone is removed (torch's with it), with a warning, and a live one is waited for."""
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    (tmp_path / "build.pid").write_text(f"{socket.gethostname()} {dead.pid}")
+    (tmp_path / "lock").touch()
+    with pytest.warns(RuntimeWarning, match="did not finish"), cpu_backend.build_lock(tmp_path):
+        assert (tmp_path / "build.pid").read_text() == f"{socket.gethostname()} {os.getpid()}"
+        assert not (tmp_path / "lock").exists()
+    assert not (tmp_path / "build.pid").exists()  # released
+    # another host's lock: judged by its age
+    (tmp_path / "build.pid").write_text("elsewhere 1")
+    os.utime(tmp_path / "build.pid", (time.time() - 2 * cpu_backend.STALE_LOCK_SECONDS,) * 2)
+    with pytest.warns(RuntimeWarning, match="did not finish"), cpu_backend.build_lock(tmp_path):
+        pass
+    # a live holder (this process, from another thread's point of view): waited for until it lets go
+    holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.5)"])
+    (tmp_path / "build.pid").write_text(f"{socket.gethostname()} {holder.pid}")
+    threading.Timer(0.3, lambda: (tmp_path / "build.pid").unlink()).start()
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with cpu_backend.build_lock(tmp_path, poll=0.05):
+            pass
+    assert time.perf_counter() - start >= 0.3
+    holder.wait()

@@ -50,9 +50,10 @@ def test_wheel_holds_only_the_uw3dgs_package(wheel):
         assert any(n.startswith(f"uw3dgs/{sub}/") for n in names), sub
     for grid in ROOT.glob("configs/*.yaml"):
         assert f"uw3dgs/configs/{grid.name}" in names
-    from uw3dgs.render.cpu_backend import SOURCES
+    from uw3dgs.render.cpu_backend import HEADERS, SOURCES
 
-    for source in SOURCES:  # the compiled CPU kernels build from these on first use
+    assert HEADERS
+    for source in [*SOURCES, *HEADERS]:  # the compiled CPU kernels build from these on first use
         assert f"uw3dgs/render/csrc/{source.name}" in names
 
 

@@ -24,10 +24,13 @@ from __future__ import annotations
 
 import hashlib
 import os
+import socket
 import sys
 import threading
 import time
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import ModuleType
 
@@ -46,6 +49,8 @@ SOURCES = [Path(__file__).parent / "csrc" / name
                         "ssim.cpp")]
 """The rasterizer, the medium's VM field read (fields/vm_kernel.py), the SH colours (render/sh_kernel.py), PAUP's
 phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py) and their Python bindings: one module."""
+HEADERS = sorted((Path(__file__).parent / "csrc").glob("*.h"))
+"""Headers the sources include (exp_f32.h): part of the build's version, and of the wheel."""
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
 """-ffp-contract=off: no fused multiply-adds, so results follow the reference's rounding as closely as possible."""
 
@@ -67,6 +72,10 @@ def _simd_flags() -> list[str]:
     return ["-mavx2", "-mfma"] + ([f"-m{f}" for f in AVX512] if set(AVX512) <= flags else [])
 
 
+STALE_LOCK_SECONDS = 900.0
+"""A build lock of another host older than this is taken as left by a killed build (a build takes one to three
+minutes); on this host the lock's process is asked directly."""
+
 MAX_TILE = 256
 """Largest tile_size the compiled backend takes (its per-row codes hold 8-bit rows); larger ones use the reference."""
 
@@ -83,9 +92,57 @@ def build_directory() -> Path:
         root = default_cache_dir() / "torch_extensions"
     flags = _simd_flags()
     simd = "_avx512" if "-mavx512f" in flags else "_avx2" if flags else ""
-    # the sources' hash: two checkouts of different versions on one machine never rebuild over each other's module
-    digest = hashlib.sha256(b"".join(path.read_bytes() for path in SOURCES)).hexdigest()[:10]
+    # the sources' hash (headers too): two checkouts of different versions on one machine never rebuild over each
+    # other's module
+    digest = hashlib.sha256(b"".join(path.read_bytes() for path in [*SOURCES, *HEADERS])).hexdigest()[:10]
     return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}_{digest}"
+
+
+def _lock_is_stale(owner: str, age: float, stale_after: float) -> bool:
+    """Whether a build lock written as 'host pid' belongs to a build that is gone."""
+    host, _, pid = owner.partition(" ")
+    if host != socket.gethostname() or not pid.isdigit():
+        return age > stale_after
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # alive, another user's
+        return False
+    return False
+
+
+@contextmanager
+def build_lock(directory: Path, stale_after: float = STALE_LOCK_SECONDS, poll: float = 0.5) -> Iterator[None]:
+    """Hold `directory`'s build lock (`build.pid`, 'host pid') while building or loading the extension there; wait
+    while a live process holds it. torch's own lock (`lock`) has no owner and a killed build leaves it behind for
+    ever; a lock whose process is gone (or, from another host, older than `stale_after`) is removed with torch's,
+    with a warning, and the build starts again."""
+    path = directory / "build.pid"
+    while True:
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            try:
+                owner, age = path.read_text(), time.time() - path.stat().st_mtime
+            except FileNotFoundError:
+                continue
+            if _lock_is_stale(owner.strip(), age, stale_after):
+                warnings.warn(f"uw3dgs: removing {path} ({owner.strip() or 'no owner'}), left by a build of the "
+                              "compiled CPU rasterizer that did not finish (killed?); building again", RuntimeWarning,
+                              stacklevel=3)
+                path.unlink(missing_ok=True)
+                (directory / "lock").unlink(missing_ok=True)
+                continue
+            time.sleep(poll)
+            continue
+        with os.fdopen(fd, "w") as handle:
+            handle.write(f"{socket.gethostname()} {os.getpid()}")
+        break
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
 
 
 def load_extension(verbose: bool = False) -> ModuleType | None:
@@ -105,16 +162,17 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
             bin_dir = str(Path(sys.executable).parent)
             if bin_dir not in os.environ.get("PATH", "").split(os.pathsep):
                 os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
-            if not (directory / f"{EXTENSION_NAME}.so").exists():
-                info(f"building the compiled CPU rasterizer into {directory} (first use, about a minute)")
-            module = cpp_extension.load(
-                name=EXTENSION_NAME,
-                sources=[str(path) for path in SOURCES],
-                extra_cflags=CFLAGS + _simd_flags(),
-                extra_ldflags=["-fopenmp"],
-                build_directory=str(directory),
-                verbose=verbose,
-            )
+            with build_lock(directory):
+                if not (directory / f"{EXTENSION_NAME}.so").exists():
+                    info(f"building the compiled CPU rasterizer into {directory} (first use, about a minute)")
+                module = cpp_extension.load(
+                    name=EXTENSION_NAME,
+                    sources=[str(path) for path in SOURCES],
+                    extra_cflags=CFLAGS + _simd_flags(),
+                    extra_ldflags=["-fopenmp"],
+                    build_directory=str(directory),
+                    verbose=verbose,
+                )
         except Exception as exc:  # noqa: BLE001 - any build failure means: fall back
             _state["error"] = f"{type(exc).__name__}: {exc}"
             # a RuntimeWarning, not console.warn: callers (and tests) filter or catch it with `warnings`

@@ -7,6 +7,8 @@
 // the thread count (not of the SIMD width the build was compiled for: sums are split across lanes).
 #include <torch/extension.h>
 
+#include "exp_f32.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -555,22 +557,13 @@ inline T hsum(const V& v) {
   return buf[0];
 }
 
-// exp(x) for x in [-80, 80] (callers clamp): Cody-Waite reduction and Sleef's minimax polynomials (about
-// 1 ulp, like the Sleef exp torch uses), in plain vector arithmetic so it vectorises; q * L2U is exact.
+// exp(x) for x in [-80, 80] (callers clamp), in plain vector arithmetic so it vectorises (exp_f32.h; the double
+// version below: Cody-Waite reduction and Sleef's minimax polynomial, about 1 ulp like the Sleef exp torch uses).
 inline Simd<float>::V vexp(Simd<float>::V x) {
   using V = Simd<float>::V;
   using I = Simd<float>::I;
-  V q = x * 1.442695040888963407359924681001892137f;
-  q = (q + 12582912.0f) - 12582912.0f;  // round to nearest: 1.5 * 2^23 (no -ffast-math, so not folded)
-  V s = x - q * 0.693145751953125f;
-  s = s - q * 1.428606765330187045e-06f;
-  V u = splat<V>(0.000198527617612853646278381f);
-  u = u * s + 0.00139304355252534151077271f;
-  u = u * s + 0.00833336077630519866943359f;
-  u = u * s + 0.0416664853692054748535156f;
-  u = u * s + 0.166666671633720397949219f;
-  u = u * s + 0.5f;
-  u = 1.0f + ((s * s) * u + s);
+  V q;
+  const V u = exp_f32_reduced(x, q);
   const I scale = (__builtin_convertvector(q, I) + 127) << 23;  // 2^q, a normal float for |q| <= 126
   return u * (V)scale;  // a vector cast reinterprets the bits
 }

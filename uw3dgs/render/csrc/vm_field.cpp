@@ -9,6 +9,8 @@
 // N alone, and the chunks reduced in order: bitwise identical results run to run and whatever the thread count.
 #include <torch/extension.h>
 
+#include "exp_f32.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -144,8 +146,7 @@ inline void basis_product(const T* pv, const T* lv, const Field<T>& f, int64_t C
 
 // softplus(x) = log(1 + e^x), x itself above the threshold (PyTorch's rule), over n contiguous values in place.
 // float: in plain arithmetic that vectorises (one libm exp and log1p per value cost as much as the rest of the
-// read): max(x, 0) + log1p(e^-|x|), e^-|x| by Cody-Waite reduction and Sleef's minimax polynomial (as the
-// rasterizer's vexp), log1p(z) = 2 atanh(z / (2 + z)) by its odd series, z in (0, 1] so t <= 1/3 and seven terms
+// read): max(x, 0) + log1p(e^-|x|), e^-|x| as the rasterizer's exp (exp_f32.h), log1p(z) = 2 atanh(z / (2 + z)) by its odd series, z in (0, 1] so t <= 1/3 and seven terms
 // reach float precision (the first omitted is below 1.5e-8 t); within 3e-7 relative of the exact value over
 // [-87, 20] (tests/test_medium.py), and e^-87 below (libm: a denormal or 0). double: libm.
 inline void softplus_inplace(double* x, int64_t n) {
@@ -158,17 +159,8 @@ inline void softplus_inplace(float* x, int64_t n) {
   for (int64_t i = 0; i < n; ++i) {
     const float v = x[i];
     const float a = std::max(-std::fabs(v), -87.0f);  // e^a stays a normal float
-    float q = a * 1.442695040888963407359924681001892137f;
-    q = (q + 12582912.0f) - 12582912.0f;  // round to nearest (1.5 * 2^23; no -ffast-math, so not folded)
-    float s = a - q * 0.693145751953125f;
-    s = s - q * 1.428606765330187045e-06f;
-    float u = 0.000198527617612853646278381f;
-    u = u * s + 0.00139304355252534151077271f;
-    u = u * s + 0.00833336077630519866943359f;
-    u = u * s + 0.0416664853692054748535156f;
-    u = u * s + 0.166666671633720397949219f;
-    u = u * s + 0.5f;
-    u = 1.0f + ((s * s) * u + s);
+    float q;
+    const float u = exp_f32_reduced(a, q);
     const int32_t bits = (static_cast<int32_t>(q) + 127) << 23;  // 2^q
     float scale;
     std::memcpy(&scale, &bits, sizeof scale);
