@@ -71,6 +71,14 @@ class MediumFieldConfig(InstantiateConfig):
     lands in; the betas are then fitted with B_inf fixed. 0 fits B_inf to the dark observations with beta_B."""
     open_water_min_share: float = 0.01
     """Least share of the training pixels in such cells for them to count as open water (else B_inf is fitted)."""
+    open_water_max_std: float = 0.02
+    """An empty cell looks like open water when its pixels' standard deviation is at most this in every channel
+    (colour in [0, 1]; 0.02 is about 5 grey levels of an 8-bit image): water is one colour, seabed has texture."""
+    open_water_min_uniform: float = 0.5
+    """Least share of the empty cells that must look like open water (`open_water_max_std`) for B_inf to be read
+    off them: a hole in the points over textured seabed is not water (docs/medium-recovery.md: read off such holes,
+    red B_inf was 88% off). Below it B_inf is fitted from the far, veiled end of the ranges and the identifiability
+    report says why. 0 takes every empty cell as water (the behaviour before)."""
     dehaze_unseen_with_all_poses: bool = True
     """An initial point no training view sees got its colour from the other views of the SfM model (COLMAP
     matches the test views too). True de-hazes it at its mean range to the cameras of all views whose image it
@@ -85,6 +93,8 @@ class MediumFieldConfig(InstantiateConfig):
         check_number(self, "dark_share", gt=0, le=1)
         check_number(self, "open_water_cells", ge=0, integer=True)
         check_number(self, "open_water_min_share", ge=0, le=1)
+        check_number(self, "open_water_max_std", ge=0)
+        check_number(self, "open_water_min_uniform", ge=0, le=1)
 
 
 @dataclass(frozen=True)

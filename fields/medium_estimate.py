@@ -6,7 +6,8 @@ pixel colour there is an observation I_pk of the same surface at range z_pk, and
 with one unknown clean colour J_p per point. The medium is read off these observations in three steps,
 as Sea-thru does (Akkaynak & Treibitz 2019):
 
-1. B_inf off open water (`open_water_color`): image regions no point lands in show the veiling light alone.
+1. B_inf off open water (`find_open_water`): image regions no point lands in show the veiling light alone, when
+   they look like water (most of them one colour; holes in the points over seabed do not).
 2. beta_B off the darkest observations (`dark_pixels`, `fit_backscatter`): in each range bin the darkest
    1% are taken as surfaces with J ~ 0 (shadows, crevices, dark sponges), whose colour is the backscatter
    B_inf (1 - exp(-beta_B z)) alone. Without open water B_inf is fitted to them with beta_B.
@@ -87,6 +88,11 @@ class MediumEstimate:
     """The fit's details (None when the medium was given as `known`)."""
     observations: tuple[Tensor, Tensor, Tensor] | None = None
     """(point [M], colour [M, 3], range [M] in dataset units) of the fitted points: what the fit saw."""
+    positions: Tensor | None = None
+    """[P', 3] the fitted points' positions (world units; `observations`' point ids index them): where they are,
+    for the identifiability report's check of a medium that varies in space."""
+    open_water: OpenWater | None = None
+    """What the views said about open water (`estimate_from_views`; None when it was not looked for)."""
 
 
 def _project(points: Tensor, cam: Camera) -> tuple[Tensor, Tensor, Tensor]:
@@ -111,30 +117,78 @@ def observe_points(points: Tensor, cameras: list[Camera], images: list[Tensor]) 
     return torch.cat(index), torch.cat(colors), torch.cat(ranges)
 
 
-def open_water_color(points: Tensor, cameras: list[Camera], images: list[Tensor], cells: int,
-                     min_share: float) -> Tensor | None:
-    """B_inf read off open water: the per-channel median colour of the image regions no initial point lands in.
+@dataclass
+class OpenWater:
+    """What the image cells no initial point lands in say about open water (`find_open_water`)."""
+
+    color: Tensor | None
+    """[3] B_inf read off them (the per-channel median of their pixels), None when they are not evidenced as water."""
+    empty_cells: int
+    """Cells (over all views) that no point lands in."""
+    empty_share: float
+    """Share of all training pixels in those cells."""
+    uniform_share: float
+    """Share of the empty cells whose pixels are one colour (standard deviation <= max_std in every channel)."""
+    reason: str
+    """Why the empty cells were not taken as open water (empty when they were)."""
+
+
+def find_open_water(points: Tensor, cameras: list[Camera], images: list[Tensor], cells: int, min_share: float,
+                    max_std: float = math.inf, min_uniform: float = 0.0) -> OpenWater:
+    """B_inf read off open water, where the views give evidence of it: the image regions no initial point lands in.
 
     Each view is cut into square cells, `cells` across its width. A cell that none of the `points` [P, 3]
     projects into holds nothing SfM could match in any view: open water, whose colour is the veiling light
-    B_inf alone (the median shrugs off the odd textureless patch of seabed). It is the only direct view of
-    B_inf: from surface points alone B_inf and beta_B trade off along a flat valley (above). None when the
-    empty cells hold less than `min_share` of all pixels (no open water in view).
+    B_inf alone (the median shrugs off the odd textureless patch of seabed), or a hole in the points over
+    seabed. It is the only direct view of B_inf: from surface points alone B_inf and beta_B trade off along a
+    flat valley (above). The cells are taken as water when they hold at least `min_share` of all pixels and at
+    least `min_uniform` of them are one colour (pixel standard deviation at most `max_std` in every channel,
+    colours in [0, 1]): water is uniform, seabed has texture. Without it a scene with no water in view reads
+    B_inf off seabed holes (docs/medium-recovery.md). The defaults check nothing (every empty cell is water).
     """
-    water, total = [], 0
+    water, total, stds = [], 0, []
     for cam, image in zip(cameras, images, strict=True):
         _, row, col = _project(points, cam)
         size = max(1, cam.width // cells)
-        grid_w = -(-cam.width // size)
-        hit = torch.zeros(-(-cam.height // size) * grid_w, dtype=torch.bool)
+        grid_h, grid_w = -(-cam.height // size), -(-cam.width // size)
+        cell = ((torch.arange(cam.height) // size)[:, None] * grid_w + torch.arange(cam.width) // size).view(-1)
+        hit = torch.zeros(grid_h * grid_w, dtype=torch.bool)
         hit[(row // size) * grid_w + col // size] = True
-        empty = (~hit).view(-1, grid_w).repeat_interleave(size, 0).repeat_interleave(size, 1)
-        water.append(image[empty[:cam.height, :cam.width]])
+        empty = ~hit[cell]
+        pixels = image.reshape(-1, 3)
+        water.append(pixels[empty])
         total += cam.width * cam.height
-    pixels = torch.cat(water)
-    if len(pixels) < min_share * total:
-        return None
-    return pixels.float().median(dim=0).values
+        stds.append(_cell_std(pixels[empty].double(), cell[empty]))
+    pixels, stds = torch.cat(water), torch.cat(stds)
+    uniform = float((stds <= max_std).double().mean()) if len(stds) else 0.0
+    share = len(pixels) / max(total, 1)
+    found = OpenWater(None, len(stds), share, uniform, "")
+    if share < min_share:
+        found.reason = f"the cells no point lands in hold {share:.1%} of the pixels (< {min_share:.1%})"
+    elif uniform < min_uniform:
+        found.reason = (f"only {uniform:.0%} of the {len(stds)} cells no point lands in are one colour (< "
+                        f"{min_uniform:.0%} with pixel std <= {max_std:.3f}): holes in the points over seabed, "
+                        "not water")
+    else:
+        found.color = pixels.float().median(dim=0).values
+    return found
+
+
+def _cell_std(pixels: Tensor, cell: Tensor) -> Tensor:
+    """Per cell, the largest over channels of the standard deviation of its pixels [N, 3] (cell ids [N]): [C] for
+    the C distinct cells."""
+    _, local = torch.unique(cell, return_inverse=True)
+    count = torch.bincount(local).double()[:, None]
+    mean = torch.zeros(len(count), 3, dtype=torch.float64).index_add_(0, local, pixels) / count
+    var = torch.zeros(len(count), 3, dtype=torch.float64).index_add_(0, local, (pixels - mean[local]).square())
+    return (var / (count - 1).clamp_min(1)).sqrt().max(dim=1).values
+
+
+def open_water_color(points: Tensor, cameras: list[Camera], images: list[Tensor], cells: int,
+                     min_share: float, max_std: float = math.inf, min_uniform: float = 0.0) -> Tensor | None:
+    """B_inf read off open water (`find_open_water`'s colour): None when the empty cells hold less than `min_share`
+    of all pixels, or fewer than `min_uniform` of them are one colour (no open water in view)."""
+    return find_open_water(points, cameras, images, cells, min_share, max_std, min_uniform).color
 
 
 def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
@@ -180,7 +234,7 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed, local = torch.unique(idx, return_inverse=True)
     colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
-    return MediumEstimate(*medium, colors, len(fitted), fit, observations)
+    return MediumEstimate(*medium, colors, len(fitted), fit, observations, points[fitted])
 
 
 
@@ -188,18 +242,23 @@ def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indic
                         known: tuple[Tensor, Tensor, Tensor] | None = None,
                         residual: bool | None = None) -> tuple[MediumEstimate, Tensor | None]:
     """The estimate `--model.medium.init estimate` starts a run from, with the medium `config`'s knobs and the
-    training views `train_indices` of `scene`: B_inf read off open water where the views show it (unless `known`
-    gives the medium), else fitted. `residual` overrides `config.estimate_residual`. Returns the estimate and the
+    training views `train_indices` of `scene`: B_inf read off open water where the views give evidence of it
+    (`find_open_water`; unless `known` gives the medium), else fitted with beta_B to the darkest observations, whose
+    far, veiled end approaches it (the identifiability report says how far). `residual` overrides
+    `config.estimate_residual`. Returns the estimate (what was found of open water in `estimate.open_water`) and the
     open-water colour [3] it used (None: B_inf fitted or known)."""
     cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
-    water = None
+    found = None
     if known is None and config.open_water_cells > 0:
-        water = open_water_color(scene.points.float(), cameras, images, config.open_water_cells,
-                                 config.open_water_min_share)
+        found = find_open_water(scene.points.float(), cameras, images, config.open_water_cells,
+                                config.open_water_min_share, config.open_water_max_std,
+                                config.open_water_min_uniform)
+    water = None if found is None else found.color
     estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, float(scene.dataset_scale),
                                b_inf=water, dark_bins=config.dark_bins, dark_share=config.dark_share,
                                sfm_cameras=scene.cameras if config.dehaze_unseen_with_all_poses else None,
                                known=known, residual=config.estimate_residual if residual is None else residual)
+    estimate.open_water = found
     return estimate, water
 
 

@@ -20,19 +20,76 @@ A weak parameter is reported with the scene's properties that explain it:
 - the backscatter samples (the darkest observations per range bin): how many, and how far above the fitted
   backscatter curve they lie, as a share of B_inf (not black: the residual term, or a beta_B biased high).
 
-B_inf read off open water is a measurement, not a fit: it is reported as identifiable.
+B_inf read off open water is a measurement, not a fit: it is reported as identifiable, but only where the views
+gave evidence of open water (`find_open_water`: most empty cells one colour). Otherwise B_inf was fitted, and
+two more checks say whether the far end of the ranges pins it (`far_end`):
+
+- veiled: the surfaces' own signal at the far end (the `far_quantile` of the ranges), exp(-beta_D z_far), at most
+  `max_far_transmission`: there every colour has converged to B_inf; short of it B_inf is an extrapolation;
+- agreement: the fitted B_inf within `far_end_tolerance` of the median colour of the observations beyond z_far,
+  a second reading of the same plateau (the darkest surfaces approach it from below, the typical one from above).
+
+A medium that varies in space (a plume, a turbid layer) is fitted by a homogeneous model as an average, as
+stable under the bootstrap as a homogeneous one. `spatial_check` fits the two halves of the scene along each of
+its two main horizontal axes (the principal axes of the fitted points) on their own, B_inf held at the estimate:
+where beta_D of the halves disagrees by more than `spatial_tolerance` and more than `spatial_noise_factor` times
+the bootstrap spread, the betas vary in space and are flagged (all six: particles that scatter also attenuate).
+It sees only variation across the seabed: a turbid layer that every ray crosses the same way (cameras at one
+altitude) gives every pixel the same ray-mean beta, which a homogeneous medium matches, and is not seen.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
-from uw3dgs.fields.medium_estimate import MediumFit, fit_medium
+from uw3dgs.fields.medium_estimate import MediumFit, OpenWater, fit_medium
 
 CHANNELS = "RGB"
+
+
+@dataclass(frozen=True)
+class IdentifiabilityConfig:
+    """The report's thresholds (`assess_medium`)."""
+
+    tolerance: float = 0.15
+    """A parameter is identifiable when the bootstrap half-spread and the other backscatter model's change stay
+    within this share of its value (issue 19's bar for the learned medium)."""
+    resamples: int = 8
+    """Bootstrap fits (points resampled with replacement)."""
+    seed: int = 0
+    """Seed of the bootstrap's resampling."""
+    steps: int = 100
+    """Candidates per 1-D search in the report's fits (the estimate itself uses 300)."""
+    max_observations: int = 20_000
+    """Observations per beta_D fit in the report's fits."""
+    far_quantile: float = 0.9
+    """The far end of the ranges: this quantile of the observations' ranges, z_far (B_inf fitted without open
+    water)."""
+    max_far_transmission: float = 0.2
+    """A fitted B_inf is pinned by the far end only where exp(-beta_D z_far), the share of the surfaces' own signal
+    still there, is at most this: beyond it every colour is within that share of the way to B_inf."""
+    far_end_tolerance: float = 0.15
+    """A fitted B_inf must agree within this share with the median colour of the observations beyond z_far."""
+    spatial_tolerance: float = 0.3
+    """The betas vary in space when beta_D fitted to two halves of the scene differs by more than this share of
+    the estimate in some channel (the built-in homogeneous scenes: up to 0.15; the plume: 0.4-0.5)..."""
+    spatial_noise_factor: float = 2.0
+    """... and by more than this many times the bootstrap half-spread (a half has half the points: its fits
+    scatter more)."""
+    spatial_min_points: int = 50
+    """Least fitted points in each half for the spatial check (fewer: not run)."""
+
+    def __post_init__(self) -> None:
+        for name in ("tolerance", "max_far_transmission", "far_end_tolerance", "spatial_tolerance",
+                     "spatial_noise_factor"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"IdentifiabilityConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0 < self.far_quantile < 1:
+            raise ValueError(f"IdentifiabilityConfig.far_quantile must be in (0, 1), got {self.far_quantile}")
 
 
 @dataclass
@@ -60,6 +117,19 @@ class IdentifiabilityReport:
     """'beta_D', 'beta_B' -> [3]: beta (z90 - z10), per channel."""
     open_water: bool
     """B_inf was read off open water."""
+    open_water_reason: str
+    """Why empty image cells were not taken as open water (empty when B_inf was read off it, or not looked for)."""
+    far_range: float
+    """z_far: the `far_quantile` of the observations' ranges, dataset units."""
+    far_transmission: list[float]
+    """[3] exp(-beta_D z_far): the share of the surfaces' own signal left at the far end."""
+    far_color: list[float]
+    """[3] the median colour of the observations beyond z_far (-> B_inf where the far end is veiled)."""
+    spatial_disagreement: dict[str, list[float]] | None
+    """'beta_D', 'beta_B' -> [3]: the largest difference between the fits of two halves of the scene, relative to
+    the estimate (None: not checked, no positions or too few points)."""
+    varies_in_space: bool
+    """The halves disagree (`spatial_check`): the betas are flagged as varying in space."""
     dark_samples: int
     """Backscatter samples the fit used."""
     dark_excess: list[float]
@@ -88,8 +158,14 @@ class IdentifiabilityReport:
                 f"{c.channel} not identifiable: {c.reason}" for c in checks if not c.identifiable)
             out.append(f"{name} ({values}): {verdict}")
         z10, z90 = self.range_span
-        out.append(f"ranges {z10:.2f}-{z90:.2f} (10-90%), {self.dark_samples} backscatter samples, "
-                   f"open water {'in view' if self.open_water else 'not in view'}")
+        water = "in view" if self.open_water else "not in view" + (f": {self.open_water_reason}"
+                                                                   if self.open_water_reason else "")
+        out.append(f"ranges {z10:.2f}-{z90:.2f} (10-90%), {self.dark_samples} backscatter samples, open water {water}")
+        if self.spatial_disagreement is not None:
+            halves = "; ".join(f"{name} {'/'.join(f'{x:.0%}' for x in v)}"
+                               for name, v in self.spatial_disagreement.items())
+            out.append(f"halves of the scene disagree by {halves}: "
+                       f"{'varies in space' if self.varies_in_space else 'homogeneous within the tolerance'}")
         return out
 
 
@@ -124,44 +200,136 @@ def _reason(name: str, c: int, report: IdentifiabilityReport) -> str:
     return ", ".join(hints) or "the bootstrap fits disagree"
 
 
+def far_end(z: Tensor, color: Tensor, beta_d: Tensor, quantile: float) -> tuple[float, Tensor, Tensor]:
+    """The far, veiled end of the ranges z [M] (dataset units) of observations color [M, 3]: (z_far, the `quantile`
+    of the ranges; exp(-beta_D z_far) [3], the share of the surfaces' own signal left there; the median colour [3]
+    of the observations beyond z_far, which tends to B_inf as that share goes to 0)."""
+    z_far = float(torch.quantile(z.double(), quantile))
+    far = z >= z_far
+    return z_far, torch.exp(-beta_d.double() * z_far).float(), color[far].float().median(dim=0).values
+
+
+def principal_axes(positions: Tensor) -> Tensor:
+    """[2, 3] the two main axes of the points [P, 3] (their largest principal components): across the seabed for a
+    survey, whatever the world's orientation."""
+    centred = positions.double() - positions.double().mean(0)
+    return torch.linalg.svd(centred, full_matrices=False)[2][:2].to(positions.dtype)
+
+
+def spatial_check(point: Tensor, color: Tensor, z: Tensor, positions: Tensor, b_inf: Tensor, bins: int, share: float,
+                  residual: bool, config: IdentifiabilityConfig) -> dict[str, list[float]] | None:
+    """Does the medium vary across the scene? The observations (point ids [M] into positions [P, 3], colours [M, 3],
+    ranges [M]) are split into the two halves of the points along each `principal_axes`, each half fitted on its
+    own with B_inf [3] held; returns 'beta_D', 'beta_B' -> [3] the largest |half 1 - half 2| / value of the whole,
+    over both axes (None where a half has fewer than `spatial_min_points` points)."""
+    whole = fit_medium(point, color, z, b_inf, bins, share, residual=residual, steps=config.steps,
+                       max_observations=config.max_observations)
+    disagreement = torch.zeros(2, 3, dtype=torch.float64)
+    for axis in principal_axes(positions):
+        coord = positions @ axis
+        side = coord > coord.median()
+        if min(int(side.sum()), int((~side).sum())) < config.spatial_min_points:
+            return None
+        # the same window of ranges for both halves: with a slightly wrong B_inf the fitted betas depend on the
+        # ranges fitted, and halves of a forward-looking survey are its near and its far part
+        bounds = [torch.quantile(z[half[point]].double(), torch.tensor([0.1, 0.9], dtype=torch.float64))
+                  for half in (side, ~side)]
+        lo, hi = max(float(b[0]) for b in bounds), min(float(b[1]) for b in bounds)
+        window = (z >= lo) & (z <= hi)
+        fits = []
+        for half in (side, ~side):
+            rows = half[point] & window
+            if int(torch.unique(point[rows]).numel()) < config.spatial_min_points:
+                return None
+            ids = torch.unique(point[rows], return_inverse=True)[1]
+            fit = fit_medium(ids, color[rows], z[rows], b_inf, bins, share, residual=residual, steps=config.steps,
+                             max_observations=config.max_observations)
+            fits.append(torch.stack([fit.beta_d, fit.beta_b]).double())
+        scale = torch.stack([whole.beta_d, whole.beta_b]).double().abs().clamp_min(1e-6)
+        disagreement = torch.maximum(disagreement, (fits[0] - fits[1]).abs() / scale)
+    return {"beta_D": disagreement[0].tolist(), "beta_B": disagreement[1].tolist()}
+
+
 def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf: Tensor | None, bins: int,
-                  share: float, residual: bool, tolerance: float = 0.15, resamples: int = 8, seed: int = 0,
-                  steps: int = 100, max_observations: int = 20_000) -> IdentifiabilityReport:
+                  share: float, residual: bool, config: IdentifiabilityConfig | None = None,
+                  positions: Tensor | None = None, open_water: OpenWater | None = None,
+                  **options) -> IdentifiabilityReport:
     """The report for `fit` of observations color [M, 3] of points point [M] at ranges z [M] (dataset units), as
     `fit_medium` made it (`b_inf` [3] read off open water, or None; `bins`, `share`, `residual` as given to it).
-    Each of the `resamples` bootstrap fits searches `steps` candidates over at most `max_observations`."""
-    generator = torch.Generator().manual_seed(seed)
-    other_fit = fit_medium(point, color, z, b_inf, bins, share, residual=not residual, steps=steps,
-                           max_observations=max_observations)
+    `config` holds the thresholds (`options` replace some of its fields, e.g. resamples=4); `positions` [P, 3], the
+    points' positions (`MediumEstimate.positions`), allow the check of a medium that varies in space; `open_water`
+    (`MediumEstimate.open_water`) says why B_inf was not read off open water."""
+    config = dataclasses.replace(config or IdentifiabilityConfig(), **options)
+    tolerance = config.tolerance
+    generator = torch.Generator().manual_seed(config.seed)
+    other_fit = fit_medium(point, color, z, b_inf, bins, share, residual=not residual, steps=config.steps,
+                           max_observations=config.max_observations)
     other, with_residual = other_fit.medium, fit if residual else other_fit
     fits = []
-    for _ in range(resamples):
+    for _ in range(config.resamples):
         ids, rows = bootstrap_observations(point, generator)
-        fits.append(fit_medium(ids, color[rows], z[rows], b_inf, bins, share, residual=residual, steps=steps,
-                               max_observations=max_observations).medium)
+        fits.append(fit_medium(ids, color[rows], z[rows], b_inf, bins, share, residual=residual, steps=config.steps,
+                               max_observations=config.max_observations).medium)
     z10, z90 = (float(q) for q in torch.quantile(z.double(), torch.tensor([0.1, 0.9], dtype=torch.float64)))
     z50 = float(z.double().median())
     excess = with_residual.residual * torch.exp(-with_residual.beta_d * z50) / with_residual.b_inf.clamp_min(1e-3)
+    z_far, transmission, far_color = far_end(z, color, fit.beta_d, config.far_quantile)
+    spatial = None if positions is None else spatial_check(point, color, z, positions, fit.b_inf, bins, share,
+                                                           residual, config)
     report = IdentifiabilityReport(
         range_span=(z10, z90),
         optical_depth_span={name: (beta * (z90 - z10)).tolist() for name, beta in (("beta_D", fit.beta_d),
                                                                                   ("beta_B", fit.beta_b))},
-        open_water=b_inf is not None, dark_samples=len(fit.dark_z),
+        open_water=b_inf is not None,
+        open_water_reason="" if b_inf is not None or open_water is None else open_water.reason,
+        far_range=z_far, far_transmission=transmission.tolist(), far_color=far_color.tolist(),
+        spatial_disagreement=spatial, varies_in_space=False, dark_samples=len(fit.dark_z),
         dark_excess=excess.tolist(),
-        residual=fit.residual.tolist(), tolerance=tolerance, resamples=resamples, checks=[])
+        residual=fit.residual.tolist(), tolerance=tolerance, resamples=config.resamples, checks=[])
+    spreads = {}
     for k, name in enumerate(("beta_D", "beta_B", "B_inf")):
         values = torch.stack([f[k] for f in fits]).double()
         lo, hi = torch.quantile(values, torch.tensor([0.05, 0.95], dtype=torch.float64), dim=0)
         estimate = fit.medium[k].double()
         scale = estimate.abs().clamp_min(1e-6)
-        spread = ((hi - lo) / 2 / scale).tolist()
+        spreads[name] = ((hi - lo) / 2 / scale).tolist()
+    if spatial is not None:
+        report.varies_in_space = any(d > config.spatial_tolerance and d > config.spatial_noise_factor * s
+                                     for d, s in zip(spatial["beta_D"], spreads["beta_D"], strict=True))
+    for k, name in enumerate(("beta_D", "beta_B", "B_inf")):
+        estimate = fit.medium[k].double()
+        scale = estimate.abs().clamp_min(1e-6)
         assumption = ((other[k].double() - estimate).abs() / scale).tolist()
         for c in range(3):
             measured = name == "B_inf" and b_inf is not None
-            s, a = (0.0, 0.0) if measured else (spread[c], assumption[c])
+            s, a = (0.0, 0.0) if measured else (spreads[name][c], assumption[c])
             why = [f"bootstrap spread +-{s:.0%}"] if s > tolerance else []
             if a > tolerance:
                 why.append(f"{a:.0%} off if the darkest surfaces are {'' if residual else 'not '}black")
             reason = f"{', '.join(why)} (> {tolerance:.0%}): {_reason(name, c, report)}" if why else ""
-            report.checks.append(ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not why, reason))
+            far = [] if name != "B_inf" or measured else _far_end_reasons(c, float(estimate[c]), report, config)
+            if name != "B_inf" and report.varies_in_space:
+                d = spatial[name][c]
+                far.append(f"varies in space: the halves of the scene give values {d:.0%} apart (beta_D up to "
+                           f"{max(spatial['beta_D']):.0%} > {config.spatial_tolerance:.0%}); a homogeneous estimate "
+                           "is an average, the VM grid must learn the field")
+            reason = "; ".join(r for r in (reason, *far) if r)
+            report.checks.append(ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not reason, reason))
     return report
+
+
+def _far_end_reasons(c: int, value: float, report: IdentifiabilityReport, config: IdentifiabilityConfig) -> list[str]:
+    """Why a B_inf fitted without open water (channel `c`, `value`) is not pinned by the far end of the ranges."""
+    lead = "fitted from the far end of the ranges, not read off open water"
+    if report.open_water_reason:
+        lead += f" ({report.open_water_reason})"
+    why = []
+    t = report.far_transmission[c]
+    if t > config.max_far_transmission:
+        why.append(f"the far end (range {report.far_range:.2f}) still shows {t:.0%} of the surfaces' own signal "
+                   f"(> {config.max_far_transmission:.0%}): the veiling light is not reached")
+    gap = abs(report.far_color[c] - value) / max(abs(value), 1e-6)
+    if gap > config.far_end_tolerance:
+        why.append(f"the far end's median colour {report.far_color[c]:.3f} is {gap:.0%} from it "
+                   f"(> {config.far_end_tolerance:.0%})")
+    return [f"{lead}: {', '.join(why)}"] if why else []
