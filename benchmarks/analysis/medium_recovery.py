@@ -132,8 +132,12 @@ def estimate_row(scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> 
         row[key] = {"medium": medium, "errors": medium_errors(scene, scene_config, est),
                     "errors_ray_mean": ray_mean_errors(datamanager, scene_config, flat)}
         if not residual:
-            report = assess_medium(*est.observations, est.fit, water, knobs.dark_bins, knobs.dark_share, residual)
+            report = assess_medium(*est.observations, est.fit, water, knobs.dark_bins, knobs.dark_share, residual,
+                                   positions=est.positions, open_water=est.open_water)
             row["report"] = report.lines()
+            row["open_water_reason"] = report.open_water_reason
+            row["varies_in_space"] = report.varies_in_space
+            row["spatial_disagreement"] = report.spatial_disagreement
             row["weak"] = [f"{c.name} {c.channel}" for c in report.checks if not c.identifiable]
             row["reasons"] = [f"{c.name} {c.channel}: {c.reason}" for c in report.checks if not c.identifiable]
     clean = [psnr(b["image"], b["clean_image"]) for b in datamanager.test_batches()]
@@ -159,12 +163,43 @@ def train_and_eval(run_root: Path, argv: list[str], steps: int) -> Path:
     return config
 
 
-def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, cache_dir: Path | None) -> dict:
+def same_medium(a: dict, b: dict, tolerance: float = 1e-6) -> bool:
+    """Whether two estimates' media (beta_d, beta_b, b_inf lists) agree to `tolerance`."""
+    return all(abs(x - y) <= tolerance for k in ("beta_d", "beta_b", "b_inf") for x, y in zip(a[k], b[k], strict=True))
+
+
+def re_estimate(name: str, output_dir: Path, scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> None:
+    """Make the estimate and report of `name` again (after a change to either). A saved row whose estimate is the
+    same keeps its trained run and takes the new report; one whose estimate moved is set aside (its run, into
+    OUTPUT_DIR/VARIANT.before/) to be trained again from the new estimate."""
+    folder = output_dir / name
+    row_path, estimate_path = folder / "row.json", folder / "estimate.json"
+    new = estimate_row(scene_config, cache_dir)
+    folder.mkdir(parents=True, exist_ok=True)
+    estimate_path.write_text(json.dumps(new, indent=1))
+    if not row_path.is_file():
+        return
+    row = json.loads(row_path.read_text())
+    if same_medium(row["estimate"]["medium"], new["estimate"]["medium"]):
+        row.update(new)
+        row_path.write_text(json.dumps(row, indent=1))
+        return
+    aside = output_dir / f"{name}.before"
+    aside.mkdir(exist_ok=True)
+    for item in folder.iterdir():
+        if item.name != "estimate.json":
+            shutil.move(str(item), str(aside / item.name))
+
+
+def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, cache_dir: Path | None,
+                estimate_again: bool = False) -> dict:
     path = output_dir / name / "row.json"
-    if path.is_file() and json.loads(path.read_text())["steps"] == steps:
-        return json.loads(path.read_text())
     options, method_flags = VARIANTS[name]
     scene_config = SyntheticSceneConfig(**{**options, **scene_overrides})
+    if estimate_again:
+        re_estimate(name, output_dir, scene_config, cache_dir)
+    if path.is_file() and json.loads(path.read_text())["steps"] == steps:
+        return json.loads(path.read_text())
     estimate_path = output_dir / name / "estimate.json"
     if estimate_path.is_file():
         row = json.loads(estimate_path.read_text())
@@ -250,13 +285,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scene", action="append", default=[], metavar="KEY=VALUE",
                         help="a SyntheticSceneConfig option for every variant, e.g. width=48")
     parser.add_argument("--cache-dir", type=Path, default=None, help="where scenes are generated (default: uw-train's)")
+    parser.add_argument("--estimate-again", action="store_true",
+                        help="make every estimate and report again; saved runs whose estimate is unchanged are kept, "
+                             "the others set aside (OUTPUT_DIR/VARIANT.before/) and trained again")
     args = parser.parse_args(argv)
     fields = {f.name: f.type for f in dataclasses.fields(SyntheticSceneConfig)}
     overrides = {}
     for item in args.scene:
         key, value = item.split("=", 1)
         overrides[key] = int(value) if fields[key] in (int, "int") else float(value)
-    rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir) for name in args.variants]
+    rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir, args.estimate_again)
+            for name in args.variants]
     print("\n".join(table(rows) + [""] + field_table(rows)))
 
 
