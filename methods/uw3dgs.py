@@ -104,8 +104,9 @@ class UW3DGSModel(GaussianSplattingModel):
         if known is not None:
             info("medium: the true one (gt/medium.json), an oracle for analysis")
         else:
-            source = "fitted (no open water in view)" if water is None else \
-                f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
+            why = estimate.open_water.reason if estimate.open_water is not None else ""
+            source = f"fitted from the far end of the ranges (no open water: {why or 'not looked for'})" \
+                if water is None else f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
             info(f"medium estimate: B_inf {source}")
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,

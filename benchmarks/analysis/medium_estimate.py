@@ -45,7 +45,8 @@ def main() -> None:
         scene = datamanager.scene
         cameras = [scene.cameras[i] for i in datamanager.train_indices]
         images = [scene.images[i] for i in datamanager.train_indices]
-        water = open_water_color(scene.points, cameras, images, knobs.open_water_cells, knobs.open_water_min_share)
+        water = open_water_color(scene.points, cameras, images, knobs.open_water_cells, knobs.open_water_min_share,
+                                 knobs.open_water_max_std, knobs.open_water_min_uniform)
         for b_inf in ([water] if water is not None else []) + [None]:
             start = time.perf_counter()
             est = estimate_medium(scene.points, scene.point_colors, cameras, images, scene.dataset_scale,
