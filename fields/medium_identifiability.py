@@ -47,12 +47,13 @@ import torch
 from torch import Tensor
 
 from uw3dgs.fields.medium_estimate import MediumFit, OpenWater, fit_medium
+from uw3dgs.options import CheckedConfig, check_number
 
 CHANNELS = "RGB"
 
 
 @dataclass(frozen=True)
-class IdentifiabilityConfig:
+class IdentifiabilityConfig(CheckedConfig):
     """The report's thresholds (`assess_medium`)."""
 
     tolerance: float = 0.15
@@ -83,13 +84,14 @@ class IdentifiabilityConfig:
     spatial_min_points: int = 50
     """Least fitted points in each half for the spatial check (fewer: not run)."""
 
-    def __post_init__(self) -> None:
+    def check_options(self) -> None:
+        super().check_options()
         for name in ("tolerance", "max_far_transmission", "far_end_tolerance", "spatial_tolerance",
                      "spatial_noise_factor"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"IdentifiabilityConfig.{name} must be >= 0, got {getattr(self, name)}")
-        if not 0 < self.far_quantile < 1:
-            raise ValueError(f"IdentifiabilityConfig.far_quantile must be in (0, 1), got {self.far_quantile}")
+            check_number(self, name, ge=0)
+        for name in ("resamples", "steps", "max_observations", "spatial_min_points"):
+            check_number(self, name, ge=1, integer=True)
+        check_number(self, "far_quantile", gt=0, lt=1)
 
 
 @dataclass
