@@ -79,6 +79,10 @@ class MediumFieldConfig(InstantiateConfig):
     off them: a hole in the points over textured seabed is not water (docs/medium-recovery.md: read off such holes,
     red B_inf was 88% off). Below it B_inf is fitted from the far, veiled end of the ranges and the identifiability
     report says why. 0 takes every empty cell as water (the behaviour before)."""
+    far_end_quantile: float = 0.9
+    """'estimate' without open water reads B_inf off the far, veiled end of the ranges (fields/medium_estimate.py,
+    `veiling_light_from_far_end`): the observations beyond this quantile of their ranges. 0 fits B_inf with beta_B
+    to the dark observations alone (the behaviour before)."""
     dehaze_unseen_with_all_poses: bool = True
     """An initial point no training view sees got its colour from the other views of the SfM model (COLMAP
     matches the test views too). True de-hazes it at its mean range to the cameras of all views whose image it
@@ -95,6 +99,7 @@ class MediumFieldConfig(InstantiateConfig):
         check_number(self, "open_water_min_share", ge=0, le=1)
         check_number(self, "open_water_max_std", ge=0)
         check_number(self, "open_water_min_uniform", ge=0, le=1)
+        check_number(self, "far_end_quantile", ge=0, lt=1)
 
 
 @dataclass(frozen=True)

@@ -21,6 +21,9 @@ as Sea-thru does (Akkaynak & Treibitz 2019):
    parameter), so black shadows keep the plain fit. Without open water its far end, where every colour
    converges to the veiling light, gives B_inf.
 
+Without open water (`estimate_from_views`), B_inf comes from the far, veiled end of the ranges before steps 2-3
+(`veiling_light_from_far_end`): the middle of the darkest surfaces' plateau and the far observations' median colour.
+
 Why not one joint fit of everything: with J_p free, (B_inf, beta_B, J_p) trade off along a flat valley
 (a little less backscatter, a little brighter J_p), and a joint fit drifts to almost no backscatter
 (docs/methods/uw3dgs.md shows it on IUI3-RedSea: a green URI). The dark
@@ -66,6 +69,13 @@ class MediumFit:
     """[K] ranges (dataset units) of the backscatter samples (`dark_pixels`)."""
     dark_color: Tensor
     """[K, 3] their colours."""
+    far_quantile: float = 0.0
+    """> 0: B_inf was read off the far end of the ranges (this quantile of them), between the two readings below
+    (`veiling_light_from_far_end`); 0: given (open water) or fitted with beta_B to the dark samples."""
+    veil_below: Tensor | None = None
+    """[3] the darkest surfaces' plateau: B_inf fitted with beta_B to the dark samples (a reading from below)."""
+    veil_above: Tensor | None = None
+    """[3] the median colour of the observations at the far end of the ranges (a reading from above)."""
 
     @property
     def medium(self) -> tuple[Tensor, Tensor, Tensor]:
@@ -207,7 +217,8 @@ def color_ranges(points: Tensor, cameras: list[Camera]) -> Tensor:
 def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera], images: list[Tensor],
                     dataset_scale: float, b_inf: Tensor | None = None, min_views: int = 3, dark_bins: int = 10,
                     dark_share: float = 0.01, sfm_cameras: list[Camera] | None = None,
-                    known: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = False) -> MediumEstimate:
+                    known: tuple[Tensor, Tensor, Tensor] | None = None, residual: bool = False,
+                    far_quantile: float = 0.0) -> MediumEstimate:
     """Fit a homogeneous medium and per-point clean colours to the points' observations (see module doc).
 
     Ranges are converted to dataset units (x `dataset_scale`), so the betas are per dataset unit. Only points
@@ -218,7 +229,9 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     water twice once the model adds it. `b_inf` [3], when given (read off open water by `open_water_color`),
     is kept; `dark_bins` and `dark_share` choose the backscatter samples (`dark_pixels`). `known` = (beta_D,
     beta_B, B_inf) skips the fit: the colours are de-hazed with that medium (the true one of a synthetic scene).
-    `residual` allows Sea-thru's residual term for dark surfaces that are not black (`fit_medium`).
+    `residual` allows Sea-thru's residual term for dark surfaces that are not black (`fit_medium`). Without
+    `b_inf`, `far_quantile` > 0 reads B_inf off the far end of the ranges (`veiling_light_from_far_end`); 0 fits
+    it with beta_B to the dark samples.
     """
     points = points.float()
     idx, obs, ranges = observe_points(points, cameras, images)
@@ -228,7 +241,8 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
                          "estimated from them: use --model.medium.init prior")
     fitted, local = torch.unique(idx[keep], return_inverse=True)
     observations = (local, obs[keep].float(), ranges[keep] * dataset_scale)
-    fit = None if known is not None else fit_medium(*observations, b_inf, dark_bins, dark_share, residual=residual)
+    fit = None if known is not None else fit_medium(*observations, b_inf, dark_bins, dark_share, residual=residual,
+                                                    far_quantile=far_quantile)
     medium = tuple(x.float() for x in known) if fit is None else fit.medium
     seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
@@ -243,8 +257,8 @@ def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indic
                         residual: bool | None = None) -> tuple[MediumEstimate, Tensor | None]:
     """The estimate `--model.medium.init estimate` starts a run from, with the medium `config`'s knobs and the
     training views `train_indices` of `scene`: B_inf read off open water where the views give evidence of it
-    (`find_open_water`; unless `known` gives the medium), else fitted with beta_B to the darkest observations, whose
-    far, veiled end approaches it (the identifiability report says how far). `residual` overrides
+    (`find_open_water`; unless `known` gives the medium), else off the far, veiled end of the ranges
+    (`veiling_light_from_far_end`; the identifiability report says how well it pins it). `residual` overrides
     `config.estimate_residual`. Returns the estimate (what was found of open water in `estimate.open_water`) and the
     open-water colour [3] it used (None: B_inf fitted or known)."""
     cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
@@ -257,7 +271,8 @@ def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indic
     estimate = estimate_medium(scene.points, scene.point_colors, cameras, images, float(scene.dataset_scale),
                                b_inf=water, dark_bins=config.dark_bins, dark_share=config.dark_share,
                                sfm_cameras=scene.cameras if config.dehaze_unseen_with_all_poses else None,
-                               known=known, residual=config.estimate_residual if residual is None else residual)
+                               known=known, residual=config.estimate_residual if residual is None else residual,
+                               far_quantile=config.far_end_quantile)
     estimate.open_water = found
     return estimate, water
 
@@ -412,14 +427,45 @@ def _bic(mse: Tensor, samples: int, parameters: int) -> Tensor:
     return samples * torch.log(mse.clamp_min(1e-12)) + parameters * math.log(samples)
 
 
+def far_end_color(z: Tensor, color: Tensor, quantile: float) -> tuple[float, Tensor]:
+    """The far end of observations color [M, 3] at ranges z [M]: (z_far, the `quantile` of the ranges; the median
+    colour [3] of the observations at z_far or beyond)."""
+    z_far = float(torch.quantile(z.double(), quantile))
+    return z_far, color[z >= z_far].float().median(dim=0).values
+
+
+def veiling_light_from_far_end(point: Tensor, color: Tensor, z: Tensor, quantile: float, bins: int = 10,
+                               share: float = 0.01, residual: bool = False, steps: int = 300,
+                               max_observations: int = 50_000) -> tuple[Tensor, Tensor, Tensor]:
+    """B_inf [3] without open water, off the far, veiled end of the ranges, where every colour converges to it.
+    Two readings bracket it there: the darkest surfaces' plateau (B_inf fitted with beta_B to the dark samples,
+    `fit_medium`; they approach the veiling light from below, and occluded or misread samples pull the plateau
+    lower still) and the median colour of the observations beyond the `quantile` of the ranges (the typical surface,
+    brighter than the water, approaches it from above). B_inf is the middle of the two; half their distance bounds
+    its error where the bracket holds (the identifiability report checks it, and that the far end is veiled).
+    On the built-in scene without open water: B_inf 4/3/5% off (R/G/B), against 10/16/23% for the plateau alone
+    and 88/30/17% read off holes in the points (docs/medium-recovery.md). Returns (B_inf, below, above)."""
+    below = fit_medium(point, color, z, None, bins, share, residual=residual, steps=steps,
+                       max_observations=max_observations).b_inf
+    above = far_end_color(z, color, quantile)[1]
+    return (below + above) / 2, below, above
+
+
 def fit_medium(point: Tensor, color: Tensor, z: Tensor, b_inf: Tensor | None = None, bins: int = 10,
                share: float = 0.01, residual: bool = False, rounds: int = 3, steps: int = 300,
-               max_observations: int = 50_000) -> MediumFit:
+               max_observations: int = 50_000, far_quantile: float = 0.0) -> MediumFit:
     """The homogeneous medium of observations color [M, 3] of points point [M] (0..P-1, every value present)
     at ranges z [M] > 0: beta_B (and B_inf unless `b_inf` [3] is given) from the dark pixels, then beta_D; with
     `residual`, up to `rounds` rounds of the residual backscatter fit (with the last beta_D) and beta_D again, the
-    residual kept per channel where it lowers the BIC of the dark samples. `steps` candidates per 1-D search;
-    `max_observations` enter the beta_D fit. `clean_colors` gives the J_p for the medium."""
+    residual kept per channel where it lowers the BIC of the dark samples. Without `b_inf` and with `far_quantile`
+    > 0, B_inf is read off the far end of the ranges first (`veiling_light_from_far_end`), then held. `steps`
+    candidates per 1-D search; `max_observations` enter the beta_D fit. `clean_colors` gives the J_p."""
+    if b_inf is None and far_quantile > 0:
+        veil, below, above = veiling_light_from_far_end(point, color, z, far_quantile, bins, share, residual, steps,
+                                                        max_observations)
+        fit = fit_medium(point, color, z, veil, bins, share, residual, rounds, steps, max_observations)
+        fit.far_quantile, fit.veil_below, fit.veil_above = far_quantile, below, above
+        return fit
     dark_z, dark_color = dark_pixels(z, color, bins, share)
     beta_b, veil = fit_backscatter(dark_z, dark_color, b_inf=b_inf, steps=steps)
     beta_d = fit_attenuation(point, color, z, beta_b, veil, steps, max_observations)

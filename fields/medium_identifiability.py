@@ -46,7 +46,7 @@ from dataclasses import asdict, dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.fields.medium_estimate import MediumFit, OpenWater, fit_medium
+from uw3dgs.fields.medium_estimate import MediumFit, OpenWater, far_end_color, fit_medium
 from uw3dgs.options import CheckedConfig, check_number
 
 CHANNELS = "RGB"
@@ -69,18 +69,24 @@ class IdentifiabilityConfig(CheckedConfig):
     """Observations per beta_D fit in the report's fits."""
     far_quantile: float = 0.9
     """The far end of the ranges: this quantile of the observations' ranges, z_far (B_inf fitted without open
-    water)."""
+    water; an estimate read off the far end brings its own, `MediumFit.far_quantile`)."""
     max_far_transmission: float = 0.2
     """A fitted B_inf is pinned by the far end only where exp(-beta_D z_far), the share of the surfaces' own signal
     still there, is at most this: beyond it every colour is within that share of the way to B_inf."""
     far_end_tolerance: float = 0.15
-    """A fitted B_inf must agree within this share with the median colour of the observations beyond z_far."""
+    """B_inf read off the far end: half the distance between its two readings (the darkest surfaces' plateau and the
+    far observations' median colour), which bounds its error where they bracket it, at most this share of it.
+    B_inf fitted to the dark samples alone: its distance to the far observations' median colour."""
     spatial_tolerance: float = 0.3
     """The betas vary in space when beta_D fitted to two halves of the scene differs by more than this share of
     the estimate in some channel (the built-in homogeneous scenes: up to 0.15; the plume: 0.4-0.5)..."""
     spatial_noise_factor: float = 2.0
     """... and by more than this many times the bootstrap half-spread (a half has half the points: its fits
     scatter more)."""
+    spatial_min_channels: int = 2
+    """... in at least this many of the three channels, counting only channels whose beta_D passes the other two
+    checks: particles that vary in space scale every channel's beta alike, while a channel the data hardly pins
+    (blue beta_D on the clear Jerlov types, every channel over a narrow span of ranges) scatters alone."""
     spatial_min_points: int = 50
     """Least fitted points in each half for the spatial check (fewer: not run)."""
 
@@ -89,6 +95,7 @@ class IdentifiabilityConfig(CheckedConfig):
         for name in ("tolerance", "max_far_transmission", "far_end_tolerance", "spatial_tolerance",
                      "spatial_noise_factor"):
             check_number(self, name, ge=0)
+        check_number(self, "spatial_min_channels", ge=1, le=3, integer=True)
         for name in ("resamples", "steps", "max_observations", "spatial_min_points"):
             check_number(self, name, ge=1, integer=True)
         check_number(self, "far_quantile", gt=0, lt=1)
@@ -206,9 +213,8 @@ def far_end(z: Tensor, color: Tensor, beta_d: Tensor, quantile: float) -> tuple[
     """The far, veiled end of the ranges z [M] (dataset units) of observations color [M, 3]: (z_far, the `quantile`
     of the ranges; exp(-beta_D z_far) [3], the share of the surfaces' own signal left there; the median colour [3]
     of the observations beyond z_far, which tends to B_inf as that share goes to 0)."""
-    z_far = float(torch.quantile(z.double(), quantile))
-    far = z >= z_far
-    return z_far, torch.exp(-beta_d.double() * z_far).float(), color[far].float().median(dim=0).values
+    z_far, far_color = far_end_color(z, color, quantile)
+    return z_far, torch.exp(-beta_d.double() * z_far).float(), far_color
 
 
 def principal_axes(positions: Tensor) -> Tensor:
@@ -264,18 +270,19 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
     config = dataclasses.replace(config or IdentifiabilityConfig(), **options)
     tolerance = config.tolerance
     generator = torch.Generator().manual_seed(config.seed)
+    far_quantile = fit.far_quantile  # B_inf read off the far end: every refit reads it the same way
     other_fit = fit_medium(point, color, z, b_inf, bins, share, residual=not residual, steps=config.steps,
-                           max_observations=config.max_observations)
+                           max_observations=config.max_observations, far_quantile=far_quantile)
     other, with_residual = other_fit.medium, fit if residual else other_fit
     fits = []
     for _ in range(config.resamples):
         ids, rows = bootstrap_observations(point, generator)
         fits.append(fit_medium(ids, color[rows], z[rows], b_inf, bins, share, residual=residual, steps=config.steps,
-                               max_observations=config.max_observations).medium)
+                               max_observations=config.max_observations, far_quantile=far_quantile).medium)
     z10, z90 = (float(q) for q in torch.quantile(z.double(), torch.tensor([0.1, 0.9], dtype=torch.float64)))
     z50 = float(z.double().median())
     excess = with_residual.residual * torch.exp(-with_residual.beta_d * z50) / with_residual.b_inf.clamp_min(1e-3)
-    z_far, transmission, far_color = far_end(z, color, fit.beta_d, config.far_quantile)
+    z_far, transmission, far_color = far_end(z, color, fit.beta_d, far_quantile or config.far_quantile)
     spatial = None if positions is None else spatial_check(point, color, z, positions, fit.b_inf, bins, share,
                                                            residual, config)
     report = IdentifiabilityReport(
@@ -295,10 +302,14 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
         estimate = fit.medium[k].double()
         scale = estimate.abs().clamp_min(1e-6)
         spreads[name] = ((hi - lo) / 2 / scale).tolist()
-    if spatial is not None:
-        report.varies_in_space = any(d > config.spatial_tolerance and d > config.spatial_noise_factor * s
-                                     for d, s in zip(spatial["beta_D"], spreads["beta_D"], strict=True))
-    for k, name in enumerate(("beta_D", "beta_B", "B_inf")):
+    if spatial is not None:  # only channels whose beta_D the whole scene pins can show that it varies
+        shift = ((other_fit.beta_d.double() - fit.beta_d.double()).abs() / fit.beta_d.double().clamp_min(1e-6))
+        varying = sum(d > config.spatial_tolerance and d > config.spatial_noise_factor * s and s <= tolerance
+                      and float(a) <= tolerance
+                      for d, s, a in zip(spatial["beta_D"], spreads["beta_D"], shift, strict=True))
+        report.varies_in_space = varying >= config.spatial_min_channels
+    checks = {}
+    for k, name in reversed(list(enumerate(("beta_D", "beta_B", "B_inf")))):  # B_inf first: the betas depend on it
         estimate = fit.medium[k].double()
         scale = estimate.abs().clamp_min(1e-6)
         assumption = ((other[k].double() - estimate).abs() / scale).tolist()
@@ -309,20 +320,27 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
             if a > tolerance:
                 why.append(f"{a:.0%} off if the darkest surfaces are {'' if residual else 'not '}black")
             reason = f"{', '.join(why)} (> {tolerance:.0%}): {_reason(name, c, report)}" if why else ""
-            far = [] if name != "B_inf" or measured else _far_end_reasons(c, float(estimate[c]), report, config)
+            more = [] if name != "B_inf" or measured else _far_end_reasons(c, float(estimate[c]), fit, report,
+                                                                           config)
+            if name != "B_inf" and not checks[("B_inf", c)].identifiable:
+                more.append("fitted with a B_inf that is not pinned (above): the backscatter it leaves for "
+                            "beta_B and beta_D moves with it")
             if name != "B_inf" and report.varies_in_space:
-                d = spatial[name][c]
-                far.append(f"varies in space: the halves of the scene give values {d:.0%} apart (beta_D up to "
-                           f"{max(spatial['beta_D']):.0%} > {config.spatial_tolerance:.0%}); a homogeneous estimate "
-                           "is an average, the VM grid must learn the field")
-            reason = "; ".join(r for r in (reason, *far) if r)
-            report.checks.append(ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not reason, reason))
+                more.append(f"varies in space: the halves of the scene give values {spatial[name][c]:.0%} apart "
+                            f"(beta_D {'/'.join(f'{d:.0%}' for d in spatial['beta_D'])}, > "
+                            f"{config.spatial_tolerance:.0%} in {config.spatial_min_channels}+ channels); a "
+                            "homogeneous estimate is an average, the VM grid must learn the field")
+            reason = "; ".join(r for r in (reason, *more) if r)
+            checks[(name, c)] = ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not reason, reason)
+    report.checks = [checks[(name, c)] for name in ("beta_D", "beta_B", "B_inf") for c in range(3)]
     return report
 
 
-def _far_end_reasons(c: int, value: float, report: IdentifiabilityReport, config: IdentifiabilityConfig) -> list[str]:
-    """Why a B_inf fitted without open water (channel `c`, `value`) is not pinned by the far end of the ranges."""
-    lead = "fitted from the far end of the ranges, not read off open water"
+def _far_end_reasons(c: int, value: float, fit: MediumFit, report: IdentifiabilityReport,
+                     config: IdentifiabilityConfig) -> list[str]:
+    """Why a B_inf not read off open water (channel `c`, `value`) is not pinned by the far end of the ranges."""
+    how = "read off the far end of the ranges" if fit.veil_below is not None else "fitted to the dark samples"
+    lead = f"{how}, not off open water"
     if report.open_water_reason:
         lead += f" ({report.open_water_reason})"
     why = []
@@ -330,8 +348,15 @@ def _far_end_reasons(c: int, value: float, report: IdentifiabilityReport, config
     if t > config.max_far_transmission:
         why.append(f"the far end (range {report.far_range:.2f}) still shows {t:.0%} of the surfaces' own signal "
                    f"(> {config.max_far_transmission:.0%}): the veiling light is not reached")
-    gap = abs(report.far_color[c] - value) / max(abs(value), 1e-6)
-    if gap > config.far_end_tolerance:
-        why.append(f"the far end's median colour {report.far_color[c]:.3f} is {gap:.0%} from it "
-                   f"(> {config.far_end_tolerance:.0%})")
+    if fit.veil_below is not None and fit.veil_above is not None:
+        below, above = float(fit.veil_below[c]), float(fit.veil_above[c])
+        half = abs(above - below) / 2 / max(abs(value), 1e-6)
+        if half > config.far_end_tolerance:
+            why.append(f"its two readings there (darkest surfaces {below:.3f}, median colour {above:.3f}) leave it "
+                       f"+-{half:.0%} (> {config.far_end_tolerance:.0%})")
+    else:
+        gap = abs(report.far_color[c] - value) / max(abs(value), 1e-6)
+        if gap > config.far_end_tolerance:
+            why.append(f"the far end's median colour {report.far_color[c]:.3f} is {gap:.0%} from it "
+                       f"(> {config.far_end_tolerance:.0%})")
     return [f"{lead}: {', '.join(why)}"] if why else []
