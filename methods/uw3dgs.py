@@ -105,7 +105,7 @@ class UW3DGSModel(GaussianSplattingModel):
             info("medium: the true one (gt/medium.json), an oracle for analysis")
         else:
             why = estimate.open_water.reason if estimate.open_water is not None else ""
-            source = f"fitted from the far end of the ranges (no open water: {why or 'not looked for'})" \
+            source = f"read off the far end of the ranges (no open water: {why or 'not looked for'})" \
                 if water is None else f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
             info(f"medium estimate: B_inf {source}")
         learned = mc.learn_beta
