@@ -21,19 +21,25 @@ A weak parameter is reported with the scene's properties that explain it:
   backscatter curve they lie, as a share of B_inf (not black: the residual term, or a beta_B biased high).
 
 B_inf read off open water is a measurement, not a fit: it is reported as identifiable, but only where the views
-gave evidence of open water (`find_open_water`: most empty cells one colour). Otherwise B_inf was fitted, and
-two more checks say whether the far end of the ranges pins it (`far_end`):
+gave evidence of open water (`find_open_water`: most empty cells one colour). Otherwise B_inf was read off the far
+end of the ranges (`veiling_light_from_far_end`) or fitted, and two more checks say whether the far end pins it
+(`far_end`; every refit of the report reads B_inf the way the estimate did):
 
 - veiled: the surfaces' own signal at the far end (the `far_quantile` of the ranges), exp(-beta_D z_far), at most
   `max_far_transmission`: there every colour has converged to B_inf; short of it B_inf is an extrapolation;
-- agreement: the fitted B_inf within `far_end_tolerance` of the median colour of the observations beyond z_far,
-  a second reading of the same plateau (the darkest surfaces approach it from below, the typical one from above).
+- agreement: half the distance between the far end's two readings (the darkest surfaces' plateau, from below; the
+  median colour of the observations beyond z_far, from above), which bounds the error of their middle where they
+  bracket B_inf, at most `far_end_tolerance` of it (a B_inf fitted to the dark samples alone: its distance to
+  that median colour).
+
+The betas of a channel whose B_inf is not identifiable are not either: they are fitted with it held.
 
 A medium that varies in space (a plume, a turbid layer) is fitted by a homogeneous model as an average, as
 stable under the bootstrap as a homogeneous one. `spatial_check` fits the two halves of the scene along each of
-its two main horizontal axes (the principal axes of the fitted points) on their own, B_inf held at the estimate:
-where beta_D of the halves disagrees by more than `spatial_tolerance` and more than `spatial_noise_factor` times
-the bootstrap spread, the betas vary in space and are flagged (all six: particles that scatter also attenuate).
+its two main horizontal axes (the principal axes of the fitted points) on their own, B_inf held at the estimate,
+over the same window of ranges: where beta_D of the halves disagrees by more than `spatial_tolerance` and more
+than `spatial_noise_factor` times the bootstrap spread in `spatial_min_channels` of the channels the other checks
+pass, the betas vary in space and are flagged (all six: particles that scatter also attenuate).
 It sees only variation across the seabed: a turbid layer that every ray crosses the same way (cameras at one
 altitude) gives every pixel the same ray-mean beta, which a homogeneous medium matches, and is not seen.
 """
@@ -79,7 +85,8 @@ class IdentifiabilityConfig(CheckedConfig):
     B_inf fitted to the dark samples alone: its distance to the far observations' median colour."""
     spatial_tolerance: float = 0.3
     """The betas vary in space when beta_D fitted to two halves of the scene differs by more than this share of
-    the estimate in some channel (the built-in homogeneous scenes: up to 0.15; the plume: 0.4-0.5)..."""
+    the estimate (docs/medium-recovery.md: the homogeneous variants 0.01-0.36, one channel at most over 0.3; the
+    plume 0.34-0.55)..."""
     spatial_noise_factor: float = 2.0
     """... and by more than this many times the bootstrap half-spread (a half has half the points: its fits
     scatter more)."""
