@@ -14,7 +14,7 @@ query at half the range), which is the Beer-Lambert integral for a medium that v
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import torch
@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.fields.medium_identifiability import IdentifiabilityConfig
 from uw3dgs.fields.vm_kernel import vm_read
 from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
@@ -88,6 +89,12 @@ class MediumFieldConfig(InstantiateConfig):
     matches the test views too). True de-hazes it at its mean range to the cameras of all views whose image it
     lands in (their poses, never their pixels), as its colour was seen; False at the range to the nearest
     training camera, the strict protocol that uses no test-view pose."""
+    report: bool = True
+    """'estimate' also judges, before training, which of the estimate's parameters this scene's training views
+    constrain (fields/medium_identifiability.py: range span, dark observations, open water, agreement of the halves
+    of the scene), prints it and keeps it in the run folder (`notes/medium_report.json`) and in uw-eval's JSON."""
+    identifiability: IdentifiabilityConfig = field(default_factory=IdentifiabilityConfig)
+    """The report's thresholds."""
 
     def check_options(self) -> None:
         super().check_options()

@@ -23,6 +23,7 @@ from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
 from uw3dgs.fields.medium_estimate import estimate_from_views
+from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
 from uw3dgs.methods.gaussian_splatting import (
     COVERAGE_EPS,
     DensityControl,
@@ -42,6 +43,12 @@ from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 from uw3dgs.utils.console import info
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import apply_colormap, depth_to_image
+
+WEAK_MEDIUM = ("what training does with the parameters not identifiable here: they start at this estimate, and "
+               "L_beta (--model.beta-loss-weight) pulls beta_D and beta_B toward it at the Gaussians all through "
+               "training, so they stay near it unless the images say otherwise; read them (and the colours of the "
+               "URI) with the spread above. B_inf is learned from the images.")
+"""The report's last line when a parameter is weak: what the model does about it, and why."""
 
 
 @dataclass(frozen=True)
@@ -85,6 +92,8 @@ class UW3DGSModel(GaussianSplattingModel):
         self.train_cameras = [scene.cameras[i] for i in train_indices]
         self.paup = PAUP(config.paup, self.num_gaussians) if config.use_paup else None
         self.medium: MediumField | None = None
+        self.medium_report: IdentifiabilityReport | None = None
+        """The report on the starting estimate (`initialize_from_data`; None: not made, or a loaded run)."""
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
             self.medium = config.medium.setup(points=scene.points, camera_centers=centers)
@@ -108,6 +117,14 @@ class UW3DGSModel(GaussianSplattingModel):
             source = f"read off the far end of the ranges (no open water: {why or 'not looked for'})" \
                 if water is None else f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
             info(f"medium estimate: B_inf {source}")
+            if mc.report:
+                self.medium_report = assess_medium(*estimate.observations, estimate.fit, water, mc.dark_bins,
+                                                   mc.dark_share, mc.estimate_residual, mc.identifiability,
+                                                   positions=estimate.positions, open_water=estimate.open_water)
+                for line in self.medium_report.lines():
+                    info(f"medium report: {line}")
+                if any(not check.identifiable for check in self.medium_report.checks):
+                    info(f"medium report: {WEAK_MEDIUM}")
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)
@@ -117,6 +134,15 @@ class UW3DGSModel(GaussianSplattingModel):
             self.medium.set_prior(estimate.beta_d, estimate.beta_b)
             with torch.no_grad():
                 self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
+
+    def run_notes(self) -> dict[str, dict]:
+        """'medium_report': the identifiability report on the estimate the run started from
+        (`--model.medium.report`)."""
+        report = self.medium_report
+        if report is None:
+            return {}
+        weak = any(not check.identifiable for check in report.checks)
+        return {"medium_report": {**report.to_json(), "lines": report.lines(), "weak": WEAK_MEDIUM if weak else ""}}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()

@@ -97,6 +97,12 @@ def test_uw3dgs_trains_and_evaluates_with_the_homogeneous_medium(make_config):
     assert results["b_inf_rel_error"] < 0.1 and results["beta_d_rel_error"] < 0.25
     saved = json.loads((trainer.run_dir / "eval" / "results.json").read_text())
     assert saved["results"]["beta_d_r"] == results["beta_d_r"]
+    # the identifiability report on the starting estimate: in the run folder and in uw-eval's JSON
+    note = json.loads((trainer.run_dir / "notes" / "medium_report.json").read_text())
+    assert saved["notes"]["medium_report"] == note
+    assert {(c["name"], c["channel"]) for c in note["checks"]} == {
+        (name, channel) for name in ("beta_D", "beta_B", "B_inf") for channel in "RGB"}
+    assert note["lines"][0].startswith("beta_D (") and note["open_water"] in (True, False)
 
 
 def test_a_field_registered_at_run_time_is_chosen_by_name(make_config):

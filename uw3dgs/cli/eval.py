@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,14 @@ def recorded_train_time(run_dir: Path, checkpoint: Path) -> tuple[float | None, 
     return (float(seconds) if isinstance(seconds, (int, float)) else None), step
 
 
+def run_notes(run_dir: Path) -> dict[str, object]:
+    """The run's notes on how it started (RUN/notes/NAME.json -> NAME: content; `Model.run_notes`), e.g. the
+    medium's identifiability report; {} for a run without any."""
+    from uw3dgs.engine.run_folder import NOTES_DIR
+
+    return {path.stem: json.loads(path.read_text()) for path in sorted((run_dir / NOTES_DIR).glob("*.json"))}
+
+
 def run_eval(args: EvalArgs, progress: bool = True) -> dict:
     from uw3dgs.engine.evaluator import evaluate_views, load_trained
     from uw3dgs.engine.trainer import resolve_device
@@ -76,7 +85,8 @@ def run_eval(args: EvalArgs, progress: bool = True) -> dict:
                "num_test_views": len(datamanager.test_indices), "train_seconds": train_seconds,
                "train_steps": train_steps}
     data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
-            "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"]}
+            "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"],
+            "notes": run_notes(Path(args.load_config).parent)}
     write_json(output, data)
     data["output_path"] = str(output)
     return data

@@ -32,6 +32,9 @@ except ImportError:  # not on POSIX: runs are not locked
 LOCK_NAME = ".uw-train.lock"
 WRITTEN = {"config.yml", "dataparser_transforms.json", "status.json"}
 """Files of the run folder itself the trainer writes (atomically); checkpoints/ holds only the trainer's files."""
+NOTES_DIR = "notes"
+"""The model's notes on how the run started (`Model.run_notes`, e.g. the medium's identifiability report), one JSON
+file each; uw-eval copies them into its results."""
 
 
 class RunFolderError(RuntimeError):
@@ -100,7 +103,8 @@ def check_fresh(run_dir: Path) -> None:
 def remove_stale_temp_files(run_dir: Path) -> list[Path]:
     """Temporary files of atomic writes a killed run left (`.step-NNNNNN.ckpt.<hex>.tmp`, `.config.yml.<hex>.tmp`);
     called with the lock held, so no live writer owns them."""
-    return remove_temp_files(Path(run_dir) / CHECKPOINT_DIR) + remove_temp_files(run_dir, WRITTEN)
+    return (remove_temp_files(Path(run_dir) / CHECKPOINT_DIR) + remove_temp_files(Path(run_dir) / NOTES_DIR)
+            + remove_temp_files(run_dir, WRITTEN))
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -32,6 +32,7 @@ from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.engine.progress import TrainingProgress
 from uw3dgs.engine.run_folder import (
+    NOTES_DIR,
     RunFolderError,
     RunLock,
     check_fresh,
@@ -157,6 +158,8 @@ class Trainer:
         self.model.to(self.device)
         if checkpoint is None:
             self.model.initialize_from_data(self.datamanager.scene, self.datamanager.train_indices)
+            for name, note in self.model.run_notes().items():
+                write_json(self.run_dir / NOTES_DIR / f"{name}.json", note)
         self.optimizers = Optimizers(config.optimizers, self.model.param_groups(), self.model.scene_extent,
                                      config.max_num_iterations)
         self.callbacks = self.model.get_training_callbacks(self.optimizers, config.max_num_iterations)

@@ -113,6 +113,12 @@ class Model(nn.Module):
         on `--resume` or when a trained model is loaded for evaluation): fits that need the training views and
         whose result a checkpoint holds anyway, e.g. a starting medium. Default: nothing."""
 
+    def run_notes(self) -> dict[str, dict]:
+        """JSON documents (name -> content) about how this run started, which the Trainer writes into the run folder
+        (`notes/NAME.json`) after `initialize_from_data` and uw-eval copies into its JSON ('notes'). Default:
+        none."""
+        return {}
+
     def state_keys_resized_in_training(self) -> set[str]:
         """state_dict keys whose first dimension changes during training (density control changes the number of
         Gaussians); `--resume` compares every other shape with the checkpoint's exactly. Default: none."""
