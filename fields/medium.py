@@ -29,6 +29,8 @@ from uw3dgs.registry import FieldSpec
 from uw3dgs.render import cpu_backend
 
 RGB = tuple[float, float, float]
+FlatStart = Literal["zero-basis", "constant-factors"]
+FactorPenalty = Literal["norm", "roughness"]
 # (plane axes, line axis) of TensoRF's three VM modes: XY x Z, XZ x Y, YZ x X
 VM_MODES = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
 
@@ -119,7 +121,19 @@ class MediumGridConfig(MediumFieldConfig):
     components: int = 16
     """VM components R per mode."""
     init_std: float = 0.1
-    """Standard deviation of the random VM factors (their basis starts at zero, so beta starts flat)."""
+    """Standard deviation of the random VM factors: the planes and lines with flat_start 'zero-basis', the basis
+    with 'constant-factors'."""
+    flat_start: FlatStart = "zero-basis"
+    """How the field is made flat (at beta_prior, then at the estimate). 'zero-basis' (the default, the paper's code):
+    random planes and lines and a zero basis, so the planes and lines get no gradient from the images, only from the
+    factor penalty, and with factor_penalty 'norm' they collapse to ~0 within a few hundred steps and the field stays
+    flat for good (docs/medium-recovery.md, "The varying medium"). 'constant-factors': planes and lines 1 everywhere,
+    a random basis, and the bias set so the field equals the start: every factor gets image gradients from step 1.
+    Use it with factor_penalty 'roughness' (the norm would pull the constant factors to 0, away from the start)."""
+    factor_penalty: FactorPenalty = "norm"
+    """The VM factors' term in L_beta, 0.001 x (of both fields): 'norm' (the default, the paper's) = the squared norm
+    of the planes and lines, which pulls them to 0; 'roughness' = the squared differences between neighbouring cells
+    of every plane and line, which is 0 for constant factors (a flat field) and penalises only spatial variation."""
     ray_samples: int = 1
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
@@ -146,15 +160,39 @@ class HomogeneousMediumConfig(MediumFieldConfig):
 
 
 class VMField(nn.Module):
-    """An RGB field f(x) = softplus(W [plane_m(x) line_m(x)]_m + b) over [-1, 1]^3 (trilinear reads)."""
+    """An RGB field f(x) = softplus(W [plane_m(x) line_m(x)]_m + b) over [-1, 1]^3 (trilinear reads).
 
-    def __init__(self, resolution: int, components: int, init: RGB, init_std: float):
+    `start` is how the field is flat at `init` (MediumGridConfig.flat_start): 'zero-basis' = random planes and lines,
+    W = 0; 'constant-factors' = planes and lines 1 (every feature is 1 everywhere), W random, b = softplus^-1(init) -
+    W 1, so that W and the planes and lines all get gradients from the first step."""
+
+    def __init__(self, resolution: int, components: int, init: RGB, init_std: float,
+                 start: FlatStart = "zero-basis"):
         super().__init__()
         g, r = resolution, components
-        self.planes = nn.Parameter(init_std * torch.randn(3, r, g, g))
-        self.lines = nn.Parameter(init_std * torch.randn(3, r, g))
-        self.basis = nn.Parameter(torch.zeros(3, 3 * r))
-        self.bias = nn.Parameter(softplus_inverse(torch.tensor(init, dtype=torch.float32)))
+        self.start = start
+        if start == "zero-basis":
+            self.planes = nn.Parameter(init_std * torch.randn(3, r, g, g))
+            self.lines = nn.Parameter(init_std * torch.randn(3, r, g))
+            self.basis = nn.Parameter(torch.zeros(3, 3 * r))
+        else:
+            self.planes = nn.Parameter(torch.ones(3, r, g, g))
+            self.lines = nn.Parameter(torch.ones(3, r, g))
+            self.basis = nn.Parameter(init_std * torch.randn(3, 3 * r))
+        self.bias = nn.Parameter(torch.empty(3))
+        self.make_flat(torch.tensor(init, dtype=torch.float32))
+
+    @torch.no_grad()
+    def make_flat(self, value: Tensor) -> None:
+        """Make f = value [3] (> 0) everywhere, the factors as `start` has them: a zero basis, or planes and lines
+        of 1 with the basis kept and the bias taking up its constant W 1."""
+        if self.start == "zero-basis":
+            self.basis.zero_()  # the VM factors add nothing, so the bias alone sets the value
+            self.bias.copy_(softplus_inverse(value.to(self.bias)))
+            return
+        self.planes.fill_(1.0)
+        self.lines.fill_(1.0)
+        self.bias.copy_(softplus_inverse(value.to(self.bias)) - self.basis.sum(dim=1))
 
     def features(self, x: Tensor) -> Tensor:
         """[N, 3] points in [-1, 1] -> [3R, N] products of plane (bilinear) and line (linear) reads.
@@ -191,7 +229,15 @@ class VMField(nn.Module):
         return torch.cat(out, dim=0)
 
     def factor_norm(self) -> Tensor:
+        """Squared norm of the planes and lines (scalar)."""
         return self.planes.square().sum() + self.lines.square().sum()
+
+    def factor_roughness(self) -> Tensor:
+        """Sum of squared differences between neighbouring cells of the planes (along both axes) and lines (scalar):
+        0 exactly when every plane and line is constant, which makes the field flat."""
+        planes, lines = self.planes, self.lines  # [3, R, G, G], [3, R, G]
+        return (planes.diff(dim=-1).square().sum() + planes.diff(dim=-2).square().sum()
+                + lines.diff(dim=-1).square().sum())
 
 
 class MediumField(nn.Module):
@@ -256,7 +302,7 @@ class MediumGrid(MediumField):
         super().__init__(config)
         self.register_buffer("box_min", box_min.float().clone())
         self.register_buffer("box_max", box_max.float().clone())
-        args = (config.resolution, config.components, config.beta_prior, config.init_std)
+        args = (config.resolution, config.components, config.beta_prior, config.init_std, config.flat_start)
         self.compiled = config.kernel == "compiled"
         """Read the fields with the compiled CPU kernel where it applies (a plain attribute: benchmarks switch it)."""
         self.beta_d = VMField(*args)
@@ -277,19 +323,19 @@ class MediumGrid(MediumField):
 
     @torch.no_grad()
     def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
-        # the VM factors add nothing while their basis is zero, so each field's bias alone sets its value
         for field_, beta in ((self.beta_d, beta_d), (self.beta_b, beta_b)):
             if beta is not None:
-                field_.basis.zero_()
-                field_.bias.copy_(softplus_inverse(beta.to(field_.bias).clamp_min(1e-4)))
+                field_.make_flat(beta.clamp_min(1e-4))
         self.b_inf.copy_(b_inf.to(self.b_inf))
 
     def beta_parameters(self) -> list[nn.Parameter]:
         return [*self.beta_d.parameters(), *self.beta_b.parameters()]
 
     def factor_penalty(self) -> Tensor:
-        """0.001 x the squared norms of both fields' VM factors (the paper's L_beta term)."""
-        return 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
+        """0.001 x both fields' VM factor norms (the paper's L_beta term) or roughness (config.factor_penalty)."""
+        if self.config.factor_penalty == "norm":
+            return 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
+        return 0.001 * (self.beta_d.factor_roughness() + self.beta_b.factor_roughness())
 
     def normalize(self, x: Tensor) -> Tensor:
         """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""

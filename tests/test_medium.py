@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 from conftest import tiny_train_config
 
+from uw3dgs.cli.train import parse_config
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
@@ -163,13 +164,18 @@ def test_compiled_vm_read_is_bitwise_deterministic_across_threads():
         assert all(torch.equal(a, b) for a, b in zip(runs[0], other, strict=True))
 
 
-def test_medium_grid_reads_the_same_betas_compiled_or_not():
-    """`--model.medium.kernel torch` and 'compiled' give the same betas and gradients (float32, to rounding)."""
-    medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3))
+@pytest.mark.parametrize("flat_start", ["zero-basis", "constant-factors"])
+def test_medium_grid_reads_the_same_betas_compiled_or_not(flat_start):
+    """`--model.medium.kernel torch` and 'compiled' give the same betas and gradients (float32, to rounding), with
+    the factors of either flat start made to vary."""
+    torch.manual_seed(0)
+    medium = MediumGrid(MediumGridConfig(flat_start=flat_start), -torch.ones(3), torch.ones(3))
     assert medium.compiled
     with torch.no_grad():
         for field in (medium.beta_d, medium.beta_b):
             torch.nn.init.normal_(field.basis, std=0.3)
+            field.planes.add_(0.1 * torch.randn_like(field.planes))
+            field.lines.add_(0.1 * torch.randn_like(field.lines))
     x = torch.rand(500, 3) * 3 - 1.5  # some outside the box: read at its border
     results = []
     for compiled in (True, False):
@@ -189,6 +195,101 @@ def test_field_starts_flat_at_the_prior():
     prior = torch.tensor(MediumGridConfig().beta_prior)
     torch.testing.assert_close(beta_d, prior.expand(100, 3))
     torch.testing.assert_close(beta_b, prior.expand(100, 3))
+
+
+LIVE = {"flat_start": "constant-factors", "factor_penalty": "roughness"}
+
+
+def test_live_factor_options_parse():
+    config = parse_config(["uw3dgs", "--model.medium.flat-start", "constant-factors",
+                           "--model.medium.factor-penalty", "roughness"])
+    assert config.model.medium == MediumGridConfig(**LIVE)
+    assert METHODS["uw3dgs"].config.model.medium == MediumGridConfig(flat_start="zero-basis", factor_penalty="norm")
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_constant_factors_start_flat_at_the_estimate(compiled):
+    """With planes and lines of 1 and a random basis, set_homogeneous makes both fields equal the given betas
+    everywhere (to float rounding of the bias taking up the basis' constant), and L_beta's roughness is 0."""
+    torch.manual_seed(0)
+    medium = MediumGrid(MediumGridConfig(**LIVE), torch.zeros(3), torch.ones(3))
+    medium.compiled = compiled
+    x = torch.rand(500, 3) * 1.4 - 0.2  # some outside the box: read at its border
+    prior = torch.tensor(MediumGridConfig().beta_prior)
+    for value, expected in zip(medium.betas(x), (prior, prior), strict=True):
+        torch.testing.assert_close(value, expected.expand(500, 3), rtol=1e-6, atol=0)
+    estimate_d, estimate_b = torch.tensor([0.41, 0.23, 0.12]), torch.tensor([0.33, 0.26, 0.21])
+    medium.set_homogeneous(estimate_d, estimate_b, torch.tensor([0.05, 0.25, 0.35]))
+    for value, expected in zip(medium.betas(x), (estimate_d, estimate_b), strict=True):
+        torch.testing.assert_close(value, expected.expand(500, 3), rtol=1e-6, atol=0)
+    assert all(float(field.basis.detach().abs().min()) > 0 for field in (medium.beta_d, medium.beta_b))
+    assert float(medium.factor_penalty().detach()) == 0.0
+
+
+def test_factor_roughness_is_the_squared_neighbour_differences():
+    field = VMField(resolution=4, components=2, init=(0.1, 0.2, 0.3), init_std=1.0).double()
+    planes, lines = field.planes.detach(), field.lines.detach()
+    by_hand = sum(float((planes[m, r, i + 1, j] - planes[m, r, i, j]) ** 2) for m in range(3) for r in range(2)
+                  for i in range(3) for j in range(4))
+    by_hand += sum(float((planes[m, r, i, j + 1] - planes[m, r, i, j]) ** 2) for m in range(3) for r in range(2)
+                   for i in range(4) for j in range(3))
+    by_hand += sum(float((lines[m, r, k + 1] - lines[m, r, k]) ** 2) for m in range(3) for r in range(2)
+                   for k in range(3))
+    assert float(field.factor_roughness().detach()) == pytest.approx(by_hand, rel=1e-12)
+
+
+def image_like_loss(medium: MediumGrid, seed: int = 0) -> torch.Tensor:
+    """An L1 loss of underwater pixels formed with the field's ray betas against pixels of a denser medium in one
+    corner of the box (rays from one origin, world box [0, 1]^3): what the images ask of the field."""
+    g = torch.Generator().manual_seed(seed)
+    origin = torch.tensor([0.5, 0.5, 1.0])
+    dirs = F.normalize(torch.rand(512, 3, generator=g) - torch.tensor([0.5, 0.5, 1.0]), dim=-1)
+    ranges = 0.3 + 0.6 * torch.rand(512, generator=g)
+    radiance = torch.rand(512, 3, generator=g)
+    z = ranges[:, None]
+    middle = origin + dirs * z / 2
+    factor = 1 + 2 * torch.exp(-(middle - 0.2).square().sum(-1, keepdim=True) / 0.02)  # a plume, as a target
+    true_d, true_b = factor * torch.tensor([0.4, 0.2, 0.1]), factor * torch.tensor([0.3, 0.25, 0.2])
+    truth = radiance * torch.exp(-true_d * z) + 0.3 * (1 - torch.exp(-true_b * z))
+    beta_d, beta_b = medium.ray_betas(origin, dirs, ranges)
+    return (radiance * torch.exp(-beta_d * z) + 0.3 * (1 - torch.exp(-beta_b * z)) - truth).abs().mean()
+
+
+def factor_gradient(medium: MediumGrid, basis: torch.Tensor | None = None) -> float:
+    """Norm of the image-like loss' gradient w.r.t. both fields' planes and lines; with `basis` [3, 3R] read with
+    that basis in both fields (theirs restored after): whether the planes and lines could still shape the field."""
+    kept = [field.basis.detach().clone() for field in (medium.beta_d, medium.beta_b)]
+    if basis is not None:
+        for field in (medium.beta_d, medium.beta_b):
+            field.basis.data.copy_(basis)
+    medium.zero_grad()
+    image_like_loss(medium).backward()
+    for field, value in zip((medium.beta_d, medium.beta_b), kept, strict=True):
+        field.basis.data.copy_(value)
+    return sum(float(f.grad.norm()) for field in (medium.beta_d, medium.beta_b) for f in (field.planes, field.lines))
+
+
+@pytest.mark.parametrize(("options", "alive"), [({}, False), (LIVE, True)])
+def test_factors_stay_alive_under_l_beta_alone(options, alive):
+    """The collapse of docs/medium-recovery.md ("The varying medium"): started flat at the estimate, the default
+    field's planes and lines get no image gradient (zero basis), and 1,000 Adam steps (the model's lr) on L_beta alone
+    (its pull at the estimate and the factor norm) shrink them until even a nonzero basis could not make the images
+    reach them. Constant factors get image gradients from the start and keep them: L_beta is 0 at a flat start."""
+    torch.manual_seed(0)
+    medium = MediumGrid(MediumGridConfig(resolution=16, components=4, **options), torch.zeros(3), torch.ones(3))
+    estimate = torch.tensor([0.4, 0.2, 0.1])
+    medium.set_homogeneous(estimate, estimate, torch.full((3,), 0.3))
+    medium.set_prior(estimate, estimate)
+    assert (factor_gradient(medium) > 0) == alive
+    basis = 0.1 * torch.randn(3, 12)
+    reach_at_start = factor_gradient(medium, basis)
+    opt = torch.optim.Adam(medium.beta_parameters(), lr=0.001)
+    for _ in range(1000):
+        opt.zero_grad()
+        (0.05 * medium.regularizer(torch.rand(256, 3))).backward()
+        opt.step()
+    reach = factor_gradient(medium, basis) / reach_at_start
+    assert reach > 0.99 if alive else reach < 0.01
 
 
 def test_homogeneous_medium_is_fitted_and_stays_flat():
