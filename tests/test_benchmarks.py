@@ -320,6 +320,10 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     # the varying medium alone gets the field table: the estimate and the trained field, three places each
     assert [r[:2] for r in fields[2:]] == [["plume-homogeneous", "estimate"], ["plume-homogeneous", "trained"]]
     assert all(len(cell.split(" / ")) == 3 for r in fields[2:] for cell in r[2:])
+    # and the spread of the trained field: a homogeneous one has none, and no correlation with the truth
+    spread = [cells(r) for r in lines if r.count("|") == 7]
+    assert spread[2] == ["plume-homogeneous", "0/0/0", "-/-/-", "0/0/0", "-/-/-", spread[2][-1]]
+    assert float(spread[2][-1]) > 0  # the UWI's PSNR
     saved = json.loads((tmp_path / "default" / "row.json").read_text())
     assert saved["trained"]["errors"]["B_inf"] == pytest.approx(  # B_inf is scored as uw-eval scores it
         [abs(saved["eval"][f"b_inf_{c}"] - t) / t for c, t in zip("rgb", (0.05, 0.25, 0.35), strict=True)], rel=1e-5)

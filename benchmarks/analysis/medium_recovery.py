@@ -18,8 +18,10 @@ and with the homogeneous field) it
 and prints one markdown table: errors in % (R/G/B), the input's and the URI's PSNR against the clean test images,
 the verdict, and whether issue 19's bar is met (identifiable parameters within 15% after training, URI at least
 6 dB closer to the clean truth than the input), then the verdicts' reasons, then for the varying media the three
-field errors. Each variant's numbers are kept in
-OUTPUT_DIR/VARIANT/row.json. `--scene KEY=VALUE` sets a scene option for every variant (the test: tiny images).
+field errors and how the trained field varies (its spread and its correlation with the truth at the seabed
+points). Each variant's numbers are kept in OUTPUT_DIR/VARIANT/row.json. `--scene KEY=VALUE` sets a scene option
+for every variant (the test: tiny images); `--train-flags` adds uw-train method options to every variant's
+(diagnostics).
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import shlex
 import shutil
 from pathlib import Path
 
@@ -42,6 +45,8 @@ from uw3dgs.fields.medium_identifiability import assess_medium
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
 
+# the VM grid whose factors stay alive: a flat start through constant planes and lines, a roughness penalty
+LIVE = ["--model.medium.flat-start", "constant-factors", "--model.medium.factor-penalty", "roughness"]
 # name -> (scene options, method options); scene options are SyntheticSceneConfig fields
 VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "default": ({}, []),
@@ -62,6 +67,8 @@ VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "turbid-bottom-homogeneous": ({"medium_profile": "turbid-bottom"}, ["--model.medium-field", "medium-homogeneous"]),
     "plume-grid": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-grid"]),
     "plume-homogeneous": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-homogeneous"]),
+    "turbid-bottom-grid-live": ({"medium_profile": "turbid-bottom"}, ["--model.medium-field", "medium-grid", *LIVE]),
+    "plume-grid-live": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-grid", *LIVE]),
 }
 PARAMETERS = ("beta_D", "beta_B", "B_inf")
 BAR, GAIN_DB = 0.15, 6.0
@@ -92,6 +99,24 @@ def medium_errors(scene, scene_config: SyntheticSceneConfig, medium, world: torc
     return {"beta_D": ((learned_d.double() - true_d).abs() / true_d).mean(0).tolist(),
             "beta_B": ((learned_b.double() - true_b).abs() / true_b).mean(0).tolist(),
             "B_inf": ((medium.b_inf.detach().double().cpu() - truth_inf).abs() / truth_inf).tolist()}
+
+
+def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str, dict[str, list[float | None]]]:
+    """Whether the learned field varies where the truth does: per beta and channel, its standard deviation over the
+    seabed points (per dataset unit) and its Pearson correlation with the true field there (None for a flat field)."""
+    world = scene.points.detach().float().cpu()
+    dataset = world.double() * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
+    with torch.no_grad():
+        learned = [b.double() for b in medium.betas(world)]
+    out = {}
+    for name, value, truth in zip(("beta_D", "beta_B"), learned, beta_field(scene_config, dataset.numpy()),
+                                  strict=True):
+        truth = torch.as_tensor(truth)
+        std = value.std(0)
+        centred = (value - value.mean(0)) * (truth - truth.mean(0))
+        corr = centred.mean(0) / (value.std(0, correction=0) * truth.std(0, correction=0))
+        out[name] = {"std": std.tolist(), "corr": [float(c) if s > 0 else None for c, s in zip(corr, std, strict=True)]}
+    return out
 
 
 def ray_mean_errors(datamanager, scene_config: SyntheticSceneConfig, ray_betas) -> dict[str, list[float]]:
@@ -192,7 +217,7 @@ def re_estimate(name: str, output_dir: Path, scene_config: SyntheticSceneConfig,
 
 
 def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, cache_dir: Path | None,
-                estimate_again: bool = False) -> dict:
+                train_flags: list[str], estimate_again: bool = False) -> dict:
     path = output_dir / name / "row.json"
     options, method_flags = VARIANTS[name]
     scene_config = SyntheticSceneConfig(**{**options, **scene_overrides})
@@ -208,7 +233,7 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
         estimate_path.parent.mkdir(parents=True, exist_ok=True)
         estimate_path.write_text(json.dumps(row, indent=1))
     argv = ["uw3dgs", "--max-num-iterations", str(steps), "--seed", "0", "--output-dir", str(output_dir / name),
-            "--timestamp", "run", "--no-progress", *method_flags,
+            "--timestamp", "run", "--no-progress", *method_flags, *train_flags,
             "synthetic", *scene_flags({**options, **scene_overrides}),
             *(["--datamanager.cache-dir", str(cache_dir)] if cache_dir else [])]
     config = train_and_eval(output_dir / name, argv, steps)
@@ -220,7 +245,8 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
                         "errors": medium_errors(datamanager.scene, scene_config, model.medium),
                         "errors_at_centres": medium_errors(datamanager.scene, scene_config, model.medium,
                                                            model.gaussians.means),
-                        "errors_ray_mean": ray_mean_errors(datamanager, scene_config, model.ray_betas)},
+                        "errors_ray_mean": ray_mean_errors(datamanager, scene_config, model.ray_betas),
+                        "spread": field_spread(datamanager.scene, scene_config, model.medium)},
                eval=results)
     path.write_text(json.dumps(row, indent=1))
     return row
@@ -277,6 +303,24 @@ def field_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def spread_table(rows: list[dict]) -> list[str]:
+    """The varying-medium rows: how the trained field varies at the seabed points (standard deviation per dataset
+    unit, and correlation with the true field; '-' for a flat field), and the UWI's PSNR against the hazy test
+    images (how well the images are fitted)."""
+    rows = [row for row in rows if VARIANTS[row["name"]][0].get("medium_profile", "homogeneous") != "homogeneous"]
+    if not rows:
+        return []
+    lines = ["| variant | beta_D std (R/G/B) | beta_D corr with truth | beta_B std | beta_B corr | UWI PSNR |",
+             "|---|---|---|---|---|---:|"]
+    for row in rows:
+        spread = row["trained"]["spread"]
+        cells = [cell for p in PARAMETERS[:2] for cell in (
+            "/".join(f"{s:.3g}" for s in spread[p]["std"]),
+            "/".join("-" if c is None else f"{c:.2f}" for c in spread[p]["corr"]))]
+        lines.append(f"| {row['name']} | {' | '.join(cells)} | {row['eval']['psnr']:.2f} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=3000, help="training steps of every run (seed 0)")
@@ -288,15 +332,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--estimate-again", action="store_true",
                         help="make every estimate and report again; saved runs whose estimate is unchanged are kept, "
                              "the others set aside (OUTPUT_DIR/VARIANT.before/) and trained again")
+    parser.add_argument("--train-flags", default="", metavar="'FLAGS'",
+                        help="uw-train method options added to every variant's, one quoted string (a diagnostic, e.g. "
+                             "--train-flags='--optimizers.medium-beta.lr 0.01'; give it its own --output-dir)")
     args = parser.parse_args(argv)
     fields = {f.name: f.type for f in dataclasses.fields(SyntheticSceneConfig)}
     overrides = {}
     for item in args.scene:
         key, value = item.split("=", 1)
         overrides[key] = int(value) if fields[key] in (int, "int") else float(value)
-    rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir, args.estimate_again)
-            for name in args.variants]
-    print("\n".join(table(rows) + [""] + field_table(rows)))
+    rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir, shlex.split(args.train_flags),
+                        args.estimate_again) for name in args.variants]
+    print("\n".join(table(rows) + [""] + field_table(rows) + [""] + spread_table(rows)))
 
 
 if __name__ == "__main__":
