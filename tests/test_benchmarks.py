@@ -325,6 +325,7 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     assert spread[2] == ["plume-homogeneous", "0/0/0", "-/-/-", "0/0/0", "-/-/-", spread[2][-1]]
     assert float(spread[2][-1]) > 0  # the UWI's PSNR
     saved = json.loads((tmp_path / "default" / "row.json").read_text())
+    assert saved["trained"]["spread"]["beta_D"]["corr"] == [None, None, None]  # a flat truth: no correlation
     assert saved["trained"]["errors"]["B_inf"] == pytest.approx(  # B_inf is scored as uw-eval scores it
         [abs(saved["eval"][f"b_inf_{c}"] - t) / t for c, t in zip("rgb", (0.05, 0.25, 0.35), strict=True)], rel=1e-5)
     # a flat truth: the field's error at the seabed and along the rays are the same for the (flat) estimate

@@ -103,7 +103,8 @@ def medium_errors(scene, scene_config: SyntheticSceneConfig, medium, world: torc
 
 def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str, dict[str, list[float | None]]]:
     """Whether the learned field varies where the truth does: per beta and channel, its standard deviation over the
-    seabed points (per dataset unit) and its Pearson correlation with the true field there (None for a flat field)."""
+    seabed points (per dataset unit) and its Pearson correlation with the true field there (None where either is
+    flat)."""
     world = scene.points.detach().float().cpu()
     dataset = world.double() * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
     with torch.no_grad():
@@ -112,10 +113,10 @@ def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str,
     for name, value, truth in zip(("beta_D", "beta_B"), learned, beta_field(scene_config, dataset.numpy()),
                                   strict=True):
         truth = torch.as_tensor(truth)
-        std = value.std(0)
-        centred = (value - value.mean(0)) * (truth - truth.mean(0))
-        corr = centred.mean(0) / (value.std(0, correction=0) * truth.std(0, correction=0))
-        out[name] = {"std": std.tolist(), "corr": [float(c) if s > 0 else None for c, s in zip(corr, std, strict=True)]}
+        spread = value.std(0, correction=0) * truth.std(0, correction=0)
+        corr = ((value - value.mean(0)) * (truth - truth.mean(0))).mean(0) / spread
+        out[name] = {"std": value.std(0).tolist(),
+                     "corr": [float(c) if s > 0 else None for c, s in zip(corr, spread, strict=True)]}
     return out
 
 
