@@ -9,7 +9,8 @@ import torch
 import torch.nn.functional as F
 from conftest import tiny_train_config
 
-from uw3dgs.cli.train import parse_config
+from uw3dgs.cli.train import entrypoint, parse_config
+from uw3dgs.config import config_from_dict, config_to_dict
 from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
@@ -200,10 +201,15 @@ def test_field_starts_flat_at_the_prior():
 LIVE = {"flat_start": "constant-factors", "factor_penalty": "roughness"}
 
 
-def test_live_factor_options_parse():
+def test_live_factor_options_are_listed_parse_and_round_trip(capsys):
+    with pytest.raises(SystemExit):
+        entrypoint(["uw3dgs", "--help"])
+    out = capsys.readouterr().out
+    assert "--model.medium.flat-start" in out and "--model.medium.factor-penalty" in out
     config = parse_config(["uw3dgs", "--model.medium.flat-start", "constant-factors",
                            "--model.medium.factor-penalty", "roughness"])
     assert config.model.medium == MediumGridConfig(**LIVE)
+    assert config_from_dict(config_to_dict(config)) == config
     assert METHODS["uw3dgs"].config.model.medium == MediumGridConfig(flat_start="zero-basis", factor_penalty="norm")
 
 
