@@ -251,7 +251,6 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     return MediumEstimate(*medium, colors, len(fitted), fit, observations, points[fitted])
 
 
-
 def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indices: list[int],
                         known: tuple[Tensor, Tensor, Tensor] | None = None,
                         residual: bool | None = None) -> tuple[MediumEstimate, Tensor | None]:

@@ -51,6 +51,11 @@ WEAK_MEDIUM = ("what training does with the parameters not identifiable here: th
 """The report's last line when a parameter is weak: what the model does about it, and why."""
 
 
+def weak_medium_action(report: IdentifiabilityReport) -> str:
+    """WEAK_MEDIUM when the report calls a parameter not identifiable, else ''."""
+    return WEAK_MEDIUM if any(not check.identifiable for check in report.checks) else ""
+
+
 @dataclass(frozen=True)
 class UW3DGSModelConfig(GaussianSplattingModelConfig):
     _target: Target = target(lambda: UW3DGSModel)
@@ -121,10 +126,9 @@ class UW3DGSModel(GaussianSplattingModel):
                 self.medium_report = assess_medium(*estimate.observations, estimate.fit, water, mc.dark_bins,
                                                    mc.dark_share, mc.estimate_residual, mc.identifiability,
                                                    positions=estimate.positions, open_water=estimate.open_water)
-                for line in self.medium_report.lines():
-                    info(f"medium report: {line}")
-                if any(not check.identifiable for check in self.medium_report.checks):
-                    info(f"medium report: {WEAK_MEDIUM}")
+                for line in [*self.medium_report.lines(), weak_medium_action(self.medium_report)]:
+                    if line:
+                        info(f"medium report: {line}")
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)
@@ -141,8 +145,7 @@ class UW3DGSModel(GaussianSplattingModel):
         report = self.medium_report
         if report is None:
             return {}
-        weak = any(not check.identifiable for check in report.checks)
-        return {"medium_report": {**report.to_json(), "lines": report.lines(), "weak": WEAK_MEDIUM if weak else ""}}
+        return {"medium_report": {**report.to_json(), "lines": report.lines(), "weak": weak_medium_action(report)}}
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()

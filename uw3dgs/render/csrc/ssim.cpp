@@ -10,6 +10,7 @@
 
 #include <algorithm>
 #include <cstdint>
+#include <memory>
 #include <vector>
 
 namespace {
@@ -53,6 +54,12 @@ void blur(const T* in, T* out, T* tmp, int64_t H, int64_t W, int64_t K, const st
   }
 }
 
+// A buffer every pass below writes in full before reading: not zero-filled (a std::vector would add a pass).
+template <typename T>
+std::unique_ptr<T[]> scratch(int64_t n) {
+  return std::unique_ptr<T[]>(new T[n]);
+}
+
 template <typename T>
 std::vector<T> taps_of(const torch::Tensor& taps) {
   const T* p = taps.data_ptr<T>();
@@ -63,7 +70,7 @@ template <typename T>
 void forward_impl(const torch::Tensor& pred, const torch::Tensor& gt, const std::vector<T>& taps, T c1, T c2,
                   torch::Tensor& ssim_sum, torch::Tensor* grads) {
   const int64_t B = pred.size(0), H = pred.size(1), W = pred.size(2), C = pred.size(3), K = 5 * C;
-  std::vector<T> moments(H * W * K), blurred(H * W * K), tmp(H * W * K);
+  auto moments = scratch<T>(H * W * K), blurred = scratch<T>(H * W * K), tmp = scratch<T>(H * W * K);
   std::vector<double> row_sums(H);
   for (int64_t b = 0; b < B; ++b) {
     const T* x = pred.data_ptr<T>() + b * H * W * C;
@@ -71,19 +78,19 @@ void forward_impl(const torch::Tensor& pred, const torch::Tensor& gt, const std:
     // per pixel: x, y, x^2, y^2, xy (C each), the five local moments the window averages
 #pragma omp parallel for schedule(static) if (H >= kParallelRows)
     for (int64_t p = 0; p < H * W; ++p) {
-      T* m = moments.data() + p * K;
+      T* m = moments.get() + p * K;
       for (int64_t c = 0; c < C; ++c) {
         const T xv = x[p * C + c], yv = y[p * C + c];
         m[c] = xv, m[C + c] = yv, m[2 * C + c] = xv * xv, m[3 * C + c] = yv * yv, m[4 * C + c] = xv * yv;
       }
     }
-    blur(moments.data(), blurred.data(), tmp.data(), H, W, K, taps);
+    blur(moments.get(), blurred.get(), tmp.get(), H, W, K, taps);
     T* g = grads ? grads->data_ptr<T>() + b * H * W * 3 * C : nullptr;
 #pragma omp parallel for schedule(static) if (H >= kParallelRows)
     for (int64_t row = 0; row < H; ++row) {
       double sum = 0;
       for (int64_t p = row * W; p < (row + 1) * W; ++p) {
-        const T* m = blurred.data() + p * K;
+        const T* m = blurred.get() + p * K;
         for (int64_t c = 0; c < C; ++c) {
           const T mu1 = m[c], mu2 = m[C + c];
           const T mu1_sq = mu1 * mu1, mu2_sq = mu2 * mu2, mu12 = mu1 * mu2;
@@ -111,16 +118,16 @@ template <typename T>
 void backward_impl(const torch::Tensor& pred, const torch::Tensor& gt, const torch::Tensor& grads,
                    const std::vector<T>& taps, const torch::Tensor& grad_sum, torch::Tensor& g_pred) {
   const int64_t B = pred.size(0), H = pred.size(1), W = pred.size(2), C = pred.size(3), K = 3 * C;
-  std::vector<T> blurred(H * W * K), tmp(H * W * K);
+  auto blurred = scratch<T>(H * W * K), tmp = scratch<T>(H * W * K);
   for (int64_t b = 0; b < B; ++b) {
-    blur(grads.data_ptr<T>() + b * H * W * K, blurred.data(), tmp.data(), H, W, K, taps);
+    blur(grads.data_ptr<T>() + b * H * W * K, blurred.get(), tmp.get(), H, W, K, taps);
     const T go = grad_sum.data_ptr<T>()[b];
     const T* x = pred.data_ptr<T>() + b * H * W * C;
     const T* y = gt.data_ptr<T>() + b * H * W * C;
     T* out = g_pred.data_ptr<T>() + b * H * W * C;
 #pragma omp parallel for schedule(static) if (H >= kParallelRows)
     for (int64_t p = 0; p < H * W; ++p) {
-      const T* gb = blurred.data() + p * K;
+      const T* gb = blurred.get() + p * K;
       for (int64_t c = 0; c < C; ++c) {
         const int64_t i = p * C + c;
         out[i] = go * (gb[c] + T(2) * x[i] * gb[C + c] + y[i] * gb[2 * C + c]);
