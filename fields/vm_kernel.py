@@ -26,15 +26,16 @@ class _VMRead(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, *factors):
         planes, lines, basis, bias = (list(factors[i::FACTORS]) for i in range(FACTORS))
-        ctx.save_for_backward(u, *factors)
-        return cpu_backend.load_extension().vm_fields_forward(u, planes, lines, basis, bias)
+        out, pre = cpu_backend.load_extension().vm_fields_forward(u, planes, lines, basis, bias)
+        ctx.save_for_backward(u, pre, *factors)  # the pre-activations: softplus's derivative without a re-read
+        return out
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_out):
-        u, *factors = ctx.saved_tensors
+        u, pre, *factors = ctx.saved_tensors
         planes, lines, basis, bias = (list(factors[i::FACTORS]) for i in range(FACTORS))
-        g_u, *g_factors = cpu_backend.load_extension().vm_fields_backward(u, planes, lines, basis, bias,
+        g_u, *g_factors = cpu_backend.load_extension().vm_fields_backward(u, planes, lines, basis, bias, pre,
                                                                          grad_out.contiguous())
         # per field, in the inputs' order: planes, lines, basis, bias
         grads = [g_u[0], *(g for field in zip(*g_factors, strict=True) for g in field)]

@@ -23,12 +23,14 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
                                               torch::Tensor grad_render, torch::Tensor grad_depth,
                                               torch::Tensor grad_alpha, bool all_inputs);
 int num_threads();
-torch::Tensor vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
-                                std::vector<torch::Tensor> basis, std::vector<torch::Tensor> bias);
+std::vector<torch::Tensor> vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes,
+                                             std::vector<torch::Tensor> lines, std::vector<torch::Tensor> basis,
+                                             std::vector<torch::Tensor> bias);
 std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std::vector<torch::Tensor> planes,
                                                            std::vector<torch::Tensor> lines,
                                                            std::vector<torch::Tensor> basis,
-                                                           std::vector<torch::Tensor> bias, torch::Tensor grad_out);
+                                                           std::vector<torch::Tensor> bias, torch::Tensor pre,
+                                                           torch::Tensor grad_out);
 torch::Tensor sh_colors_forward(torch::Tensor means, torch::Tensor center, torch::Tensor dc, torch::Tensor rest,
                                 int64_t degree);
 std::vector<torch::Tensor> sh_colors_backward(torch::Tensor means, torch::Tensor center, torch::Tensor dc,

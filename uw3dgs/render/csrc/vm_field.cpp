@@ -4,9 +4,11 @@
 // One pass per point instead of PyTorch's twelve grid_samples per field, their stacking, the basis product and
 // the softplus, each a full pass over memory with its own backward. Several fields of one shape read at the same
 // points (the medium's beta_D and beta_B) share the point's cell lookups. The factors are read channel-last, so a
-// point's R components are contiguous, and R = 16 (the default) is unrolled. The backward recomputes a point's
-// reads instead of storing [N, 3R] features. Factor gradients are summed per chunk of points, the chunks fixed by
-// N alone, and the chunks reduced in order: bitwise identical results run to run and whatever the thread count.
+// point's R components are contiguous; at R = 16 (the default) a mode's components are one GCC vector held in
+// registers (Lanes16). The forward also returns the pre-activations, so the backward takes softplus's derivative
+// in one vectorised pass and recomputes only a point's reads, not its [3R] features. Factor gradients are summed
+// per chunk of points, the chunks fixed by N alone, and the chunks reduced in order: bitwise identical results run
+// to run and whatever the thread count.
 #include <torch/extension.h>
 
 #include "exp_f32.h"
@@ -90,10 +92,9 @@ std::vector<Field<T>> channel_last(const std::vector<torch::Tensor>& planes, con
 
 // A field's plane values pv and line values lv [3R] at a located point; with SLOPES also their derivatives along
 // the plane's row and column axes (srow, scol) and the line's axis (slin), [3R] each, in cells.
-template <typename T, int RC, bool SLOPES>
-inline void read_field(const Cells<T>& cells, const Field<T>& f, int64_t R_in, int64_t G, T* pv, T* lv,
+template <typename T, bool SLOPES>
+inline void read_field(const Cells<T>& cells, const Field<T>& f, int64_t R, int64_t G, T* pv, T* lv,
                        T* srow = nullptr, T* scol = nullptr, T* slin = nullptr) {
-  const int64_t R = RC > 0 ? RC : R_in;
   for (int m = 0; m < 3; ++m) {
     const Axis<T>&ar = cells.row[m], &ac = cells.col[m], &al = cells.lin[m];
     T* p = pv + m * R;
@@ -132,9 +133,9 @@ inline void read_field(const Cells<T>& cells, const Field<T>& f, int64_t R_in, i
 }
 
 // pre = W (pv * lv) + b for one point and field ([C]).
-template <typename T, int RC>
-inline void basis_product(const T* pv, const T* lv, const Field<T>& f, int64_t C, int64_t R_in, T* pre) {
-  const int64_t K = 3 * (RC > 0 ? RC : R_in);
+template <typename T>
+inline void basis_product(const T* pv, const T* lv, const Field<T>& f, int64_t C, int64_t R, T* pre) {
+  const int64_t K = 3 * R;
   for (int64_t c = 0; c < C; ++c) {
     T s = 0;
     const T* w = f.basis + c * K;
@@ -180,45 +181,212 @@ inline void softplus_inplace(float* x, int64_t n) {
 
 int64_t num_chunks(int64_t n) { return std::max<int64_t>(1, std::min<int64_t>(kMaxChunks, n / kChunkPoints)); }
 
-template <typename T, int RC>
-void forward_impl(const torch::Tensor& u, const std::vector<Field<T>>& fields, int64_t R_in, int64_t G, int64_t C,
-                  torch::Tensor& out) {
-  const int64_t n = u.size(0), F = fields.size(), R = RC > 0 ? RC : R_in, K = 3 * R;
+// pre_out [N, F C] = W feats(u) + b of every point and field, out = softplus(pre_out). R16: R is 16 (Lanes16).
+template <typename T, bool R16>
+void forward_impl(const torch::Tensor& u, const std::vector<Field<T>>& fields, int64_t R, int64_t G, int64_t C,
+                  torch::Tensor& out, torch::Tensor& pre_out) {
+  const int64_t n = u.size(0), F = fields.size(), K = 3 * R;
   const T* up = u.data_ptr<T>();
-  T* o = out.data_ptr<T>();
+  T* pre = pre_out.data_ptr<T>();
 #pragma omp parallel if (n >= kChunkPoints)
   {
-    std::vector<T> pv(K), lv(K), pre(C);
+    std::vector<T> pv(R16 ? 0 : K), lv(R16 ? 0 : K);
     Cells<T> cells;
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < n; ++i) {
       locate(up + 3 * i, G, cells);
       for (int64_t f = 0; f < F; ++f) {
-        read_field<T, RC, false>(cells, fields[f], R, G, pv.data(), lv.data());
-        basis_product<T, RC>(pv.data(), lv.data(), fields[f], C, R, pre.data());
-        for (int64_t c = 0; c < C; ++c) o[(i * F + f) * C + c] = pre[c];
+        if constexpr (R16) {
+          pre_activation16<T>(cells, fields[f], G, C, pre + (i * F + f) * C);
+        } else {
+          read_field<T, false>(cells, fields[f], R, G, pv.data(), lv.data());
+          basis_product<T>(pv.data(), lv.data(), fields[f], C, R, pre + (i * F + f) * C);
+        }
       }
     }
   }
+  T* o = out.data_ptr<T>();
+  std::copy(pre, pre + n * F * C, o);
   softplus_inplace(o, n * F * C);
 }
 
-// Adds one point's gradients of one field (gradient `go` [C] of its output) to the chunk's accumulators (gp, gl
-// channel-last, gw [C, K], gb [C]) and d loss / d u to du [3]. `work` holds 7 K values.
-template <typename T, int RC>
-inline void backward_point(const Cells<T>& cells, const Field<T>& f, const T* go, int64_t R_in, int64_t G, int64_t C,
-                           T* work, T* pre, T* gp, T* gl, T* gw, T* gb, T* du) {
-  const int64_t R = RC > 0 ? RC : R_in, K = 3 * R;
+// d softplus(x) / dx = sigmoid(x) (1 above softplus's threshold, where softplus is x) times the output's gradient,
+// over n contiguous values: g = go / (1 + e^-x). float: e^-x as the rasterizer's exp (exp_f32.h) in arithmetic that
+// vectorises, x clamped to [-87, 87] (sigmoid there is 1 - 1.6e-38 or 1.6e-38; the exact value is within 2e-38).
+inline void sigmoid_times(const double* x, const double* go, double* g, int64_t n) {
+#pragma omp parallel for schedule(static) if (n >= kChunkPoints)
+  for (int64_t i = 0; i < n; ++i) g[i] = x[i] > kSoftplusThreshold ? go[i] : go[i] / (1.0 + std::exp(-x[i]));
+}
+
+inline void sigmoid_times(const float* x, const float* go, float* g, int64_t n) {
+#pragma omp parallel for simd schedule(static) if (n >= kChunkPoints)
+  for (int64_t i = 0; i < n; ++i) {
+    const float a = std::min(std::max(-x[i], -87.0f), 87.0f);
+    float q;
+    const float v = exp_f32_reduced(a, q);
+    const int32_t bits = (static_cast<int32_t>(q) + 127) << 23;  // 2^q
+    float scale;
+    std::memcpy(&scale, &bits, sizeof scale);
+    const float s = go[i] / (1.0f + v * scale);
+    g[i] = x[i] > static_cast<float>(kSoftplusThreshold) ? go[i] : s;
+  }
+}
+
+// R = 16 (the default component count): a mode's 16 components as one GCC vector, kept in registers (one AVX-512
+// register of floats, two of AVX2, four of SSE; the compiler splits it to the hardware). Element-wise arithmetic is
+// the scalar code's, lane by lane; only the sums over components are in a fixed tree order.
+template <typename T>
+struct Lanes16;
+template <>
+struct Lanes16<float> {
+  typedef float V __attribute__((vector_size(64)));
+  typedef float Half __attribute__((vector_size(32)));
+  typedef float Quarter __attribute__((vector_size(16)));
+};
+template <>
+struct Lanes16<double> {
+  typedef double V __attribute__((vector_size(128)));
+  typedef double Half __attribute__((vector_size(64)));
+  typedef double Quarter __attribute__((vector_size(32)));
+};
+
+template <typename V, typename T>
+inline V load(const T* p) {
+  V v;
+  std::memcpy(&v, p, sizeof v);
+  return v;
+}
+
+template <typename V, typename T>
+inline void store(T* p, const V& v) {
+  std::memcpy(p, &v, sizeof v);
+}
+
+// Sum of the 16 lanes, halves added pairwise (8 + 8, 4 + 4, then the last four in order).
+template <typename T>
+inline T lane_sum(const typename Lanes16<T>::V& v) {
+  using L = Lanes16<T>;
+  typename L::Half lo, hi;
+  std::memcpy(&lo, &v, sizeof lo);
+  std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof lo, sizeof hi);
+  const typename L::Half h = lo + hi;
+  typename L::Quarter qlo, qhi;
+  std::memcpy(&qlo, &h, sizeof qlo);
+  std::memcpy(&qhi, reinterpret_cast<const char*>(&h) + sizeof qlo, sizeof qhi);
+  const typename L::Quarter q = qlo + qhi;
+  return (q[0] + q[1]) + (q[2] + q[3]);
+}
+
+// One mode's reads at a located point: plane value pv and line value lv; with SLOPES also their derivatives along
+// the plane's row and column axes and the line's axis, in cells.
+template <typename T, bool SLOPES>
+struct ModeRead {
+  typename Lanes16<T>::V pv, lv, srow, scol, slin;
+};
+
+template <typename T, bool SLOPES, int M>
+inline ModeRead<T, SLOPES> read_mode16(const Cells<T>& cells, const Field<T>& f, int64_t G) {
+  using V = typename Lanes16<T>::V;
+  constexpr int R = 16;
+  const Axis<T>&ar = cells.row[M], &ac = cells.col[M], &al = cells.lin[M];
+  ModeRead<T, SLOPES> out{};
+  for (int dz = 0; dz < 2; ++dz) {
+    if (!al.in[dz]) continue;
+    const V src = load<V>(f.line.data() + (M * G + al.i0 + dz) * R);
+    out.lv += al.w[dz] * src;
+    if constexpr (SLOPES) out.slin += (dz ? T(1) : T(-1)) * src;
+  }
+  for (int dy = 0; dy < 2; ++dy)
+    for (int dx = 0; dx < 2; ++dx) {
+      if (!ar.in[dy] || !ac.in[dx]) continue;
+      const V src = load<V>(f.plane.data() + ((M * G + ar.i0 + dy) * G + ac.i0 + dx) * R);
+      out.pv += (ar.w[dy] * ac.w[dx]) * src;
+      if constexpr (SLOPES) {
+        // d w / d row = +-w_col, d w / d col = +-w_row: the bilinear weights' derivatives
+        out.srow += ((dy ? T(1) : T(-1)) * ac.w[dx]) * src;
+        out.scol += ((dx ? T(1) : T(-1)) * ar.w[dy]) * src;
+      }
+    }
+  return out;
+}
+
+// pre [C] = W (pv * lv) + b of one field at a located point.
+template <typename T>
+inline void pre_activation16(const Cells<T>& cells, const Field<T>& f, int64_t G, int64_t C, T* pre) {
+  using V = typename Lanes16<T>::V;
+  const ModeRead<T, false> r0 = read_mode16<T, false, 0>(cells, f, G), r1 = read_mode16<T, false, 1>(cells, f, G),
+                           r2 = read_mode16<T, false, 2>(cells, f, G);
+  const V f0 = r0.pv * r0.lv, f1 = r1.pv * r1.lv, f2 = r2.pv * r2.lv;
+  for (int64_t c = 0; c < C; ++c) {
+    const T* w = f.basis + c * 48;
+    const V s = (load<V>(w) * f0 + load<V>(w + 16) * f1) + load<V>(w + 32) * f2;
+    pre[c] = lane_sum<T>(s) + f.bias[c];
+  }
+}
+
+// One mode's share of a point's backward (see backward_point16).
+template <typename T, int M>
+inline void backward_mode16(const Cells<T>& cells, const Field<T>& f, const T* gpre, int64_t G, int64_t C,
+                            const typename Lanes16<T>::V& gf, typename Lanes16<T>::V* du_lanes, T* gp, T* gl, T* gw) {
+  using V = typename Lanes16<T>::V;
+  constexpr int R = 16;
+  const ModeRead<T, true> r = read_mode16<T, true, M>(cells, f, G);
+  const V gval = gf * r.lv, gline = gf * r.pv;  // d loss / d plane value, d loss / d line value
+  du_lanes[kModes[M][0]] += gval * r.srow;
+  du_lanes[kModes[M][1]] += gval * r.scol;
+  du_lanes[kModes[M][2]] += gline * r.slin;
+  const V feat = r.pv * r.lv;
+  for (int64_t c = 0; c < C; ++c) {
+    T* dst = gw + c * 48 + M * R;
+    store(dst, load<V>(dst) + gpre[c] * feat);
+  }
+  const Axis<T>&ar = cells.row[M], &ac = cells.col[M], &al = cells.lin[M];
+  for (int dy = 0; dy < 2; ++dy)
+    for (int dx = 0; dx < 2; ++dx) {
+      if (!ar.in[dy] || !ac.in[dx]) continue;
+      T* dst = gp + ((M * G + ar.i0 + dy) * G + ac.i0 + dx) * R;
+      store(dst, load<V>(dst) + (ar.w[dy] * ac.w[dx]) * gval);
+    }
+  for (int dz = 0; dz < 2; ++dz) {
+    if (!al.in[dz]) continue;
+    T* dst = gl + (M * G + al.i0 + dz) * R;
+    store(dst, load<V>(dst) + al.w[dz] * gline);
+  }
+}
+
+// backward_point for R = 16, in registers.
+template <typename T>
+inline void backward_point16(const Cells<T>& cells, const Field<T>& f, const T* gpre, int64_t G, int64_t C, T* gp,
+                             T* gl, T* gw, T* gb, T* du) {
+  using V = typename Lanes16<T>::V;
+  V gf0{}, gf1{}, gf2{};  // d loss / d feature = W^T gpre, per mode
+  for (int64_t c = 0; c < C; ++c) {
+    const T g = gpre[c];
+    const T* w = f.basis + c * 48;
+    gb[c] += g;
+    gf0 += load<V>(w) * g;
+    gf1 += load<V>(w + 16) * g;
+    gf2 += load<V>(w + 32) * g;
+  }
+  V du_lanes[3] = {};
+  backward_mode16<T, 0>(cells, f, gpre, G, C, gf0, du_lanes, gp, gl, gw);
+  backward_mode16<T, 1>(cells, f, gpre, G, C, gf1, du_lanes, gp, gl, gw);
+  backward_mode16<T, 2>(cells, f, gpre, G, C, gf2, du_lanes, gp, gl, gw);
+  const T half_span = T(G - 1) / T(2);
+  for (int a = 0; a < 3; ++a) du[a] += lane_sum<T>(du_lanes[a]) * half_span;
+}
+
+// Adds one point's gradients of one field (`gpre` [C]: d loss / d its pre-activation) to the chunk's accumulators
+// (gp, gl channel-last, gw [C, K], gb [C]) and d loss / d u to du [3]. `work` holds 7 K values. Any R.
+template <typename T>
+inline void backward_point(const Cells<T>& cells, const Field<T>& f, const T* gpre, int64_t R, int64_t G, int64_t C,
+                           T* work, T* gp, T* gl, T* gw, T* gb, T* du) {
+  const int64_t K = 3 * R;
   T *pv = work, *lv = pv + K, *srow = lv + K, *scol = srow + K, *slin = scol + K, *gf = slin + K, *gval = gf + K;
-  read_field<T, RC, true>(cells, f, R, G, pv, lv, srow, scol, slin);
-  basis_product<T, RC>(pv, lv, f, C, R, pre);
+  read_field<T, true>(cells, f, R, G, pv, lv, srow, scol, slin);
   for (int64_t k = 0; k < K; ++k) gf[k] = 0;
   for (int64_t c = 0; c < C; ++c) {
-    T g = go[c];  // d / d pre = sigmoid(pre) below softplus's threshold
-    if (pre[c] <= T(kSoftplusThreshold)) {
-      const T z = std::exp(pre[c]);
-      g = g * z / (z + T(1));
-    }
+    const T g = gpre[c];
     gb[c] += g;
     T* gwc = gw + c * K;
     const T* wc = f.basis + c * K;
@@ -261,21 +429,23 @@ inline void backward_point(const Cells<T>& cells, const Field<T>& f, const T* go
   }
 }
 
-template <typename T, int RC>
-void backward_impl(const torch::Tensor& u, const std::vector<Field<T>>& fields, int64_t R_in, int64_t G, int64_t C,
-                   const torch::Tensor& grad_out, torch::Tensor& g_u, std::vector<torch::Tensor>& g_planes,
-                   std::vector<torch::Tensor>& g_lines, std::vector<torch::Tensor>& g_basis,
-                   std::vector<torch::Tensor>& g_bias) {
-  const int64_t n = u.size(0), F = fields.size(), R = RC > 0 ? RC : R_in, K = 3 * R;
+template <typename T, bool R16>
+void backward_impl(const torch::Tensor& u, const torch::Tensor& pre, const std::vector<Field<T>>& fields, int64_t R,
+                   int64_t G, int64_t C, const torch::Tensor& grad_out, torch::Tensor& g_u,
+                   std::vector<torch::Tensor>& g_planes, std::vector<torch::Tensor>& g_lines,
+                   std::vector<torch::Tensor>& g_basis, std::vector<torch::Tensor>& g_bias) {
+  const int64_t n = u.size(0), F = fields.size(), K = 3 * R;
   const int64_t chunks = num_chunks(n), plane_size = 3 * G * G * R, line_size = 3 * G * R;
   const int64_t block = plane_size + line_size + C * K + C;  // one field's accumulators: planes, lines, W, b
   // each chunk's thread zeroes its own accumulators (in parallel, and in that thread's memory)
   std::unique_ptr<T[]> acc(new T[chunks * F * block]);
-  const T *up = u.data_ptr<T>(), *go = grad_out.data_ptr<T>();
+  std::unique_ptr<T[]> gpre(new T[n * F * C]);  // d loss / d pre-activation of every point and field
+  sigmoid_times(pre.data_ptr<T>(), grad_out.data_ptr<T>(), gpre.get(), n * F * C);
+  const T* up = u.data_ptr<T>();
   T* gu = g_u.data_ptr<T>();
 #pragma omp parallel if (n >= kChunkPoints)
   {
-    std::vector<T> work(7 * K), pre(C);
+    std::vector<T> work(R16 ? 0 : 7 * K);
     Cells<T> cells;
 #pragma omp for schedule(static, 1)
     for (int64_t chunk = 0; chunk < chunks; ++chunk) {
@@ -289,8 +459,11 @@ void backward_impl(const torch::Tensor& u, const std::vector<Field<T>>& fields, 
         T* gw = gl + line_size;
         for (int64_t i = begin; i < end; ++i) {
           locate(up + 3 * i, G, cells);
-          backward_point<T, RC>(cells, fields[f], go + (i * F + f) * C, R, G, C, work.data(), pre.data(), gp, gl,
-                                gw, gw + C * K, gu + 3 * i);
+          const T* g = gpre.get() + (i * F + f) * C;
+          if constexpr (R16)
+            backward_point16<T>(cells, fields[f], g, G, C, gp, gl, gw, gw + C * K, gu + 3 * i);
+          else
+            backward_point<T>(cells, fields[f], g, R, G, C, work.data(), gp, gl, gw, gw + C * K, gu + 3 * i);
         }
       }
     }
@@ -350,32 +523,36 @@ void check_inputs(const torch::Tensor& u, const std::vector<torch::Tensor>& plan
 
 }  // namespace
 
-// softplus(W_f feats_f(u) + b_f) of every field f, [N, F * C] (field-major per point), at points u [N, 3] in [-1, 1].
-torch::Tensor vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
+// (softplus(W_f feats_f(u) + b_f), W_f feats_f(u) + b_f) of every field f, each [N, F * C] (field-major per point),
+// at points u [N, 3] in [-1, 1]: the values and their pre-activations, which the backward takes.
+std::vector<torch::Tensor> vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
                                 std::vector<torch::Tensor> basis, std::vector<torch::Tensor> bias) {
   check_inputs(u, planes, lines, basis, bias);
   const int64_t F = planes.size(), R = planes[0].size(1), G = planes[0].size(2), C = basis[0].size(0);
-  auto out = torch::empty({u.size(0), F * C}, u.options());
+  auto out = torch::empty({u.size(0), F * C}, u.options()), pre = torch::empty_like(out);
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "vm_fields_forward", [&] {
     const auto fields = channel_last<scalar_t>(planes, lines, basis, bias);
     if (R == 16)  // the default component count, unrolled
-      forward_impl<scalar_t, 16>(u, fields, R, G, C, out);
+      forward_impl<scalar_t, true>(u, fields, R, G, C, out, pre);
     else
-      forward_impl<scalar_t, 0>(u, fields, R, G, C, out);
+      forward_impl<scalar_t, false>(u, fields, R, G, C, out, pre);
   });
-  return out;
+  return {out, pre};
 }
 
-// (d u [N, 3], d planes, d lines, d basis, d bias per field) given grad_out [N, F * C].
+// (d u [N, 3], d planes, d lines, d basis, d bias per field) given grad_out [N, F * C] and the forward's
+// pre-activations `pre` [N, F * C].
 std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std::vector<torch::Tensor> planes,
                                                            std::vector<torch::Tensor> lines,
                                                            std::vector<torch::Tensor> basis,
-                                                           std::vector<torch::Tensor> bias, torch::Tensor grad_out) {
+                                                           std::vector<torch::Tensor> bias, torch::Tensor pre,
+                                                           torch::Tensor grad_out) {
   check_inputs(u, planes, lines, basis, bias);
   const int64_t F = planes.size(), R = planes[0].size(1), G = planes[0].size(2), C = basis[0].size(0);
-  TORCH_CHECK(grad_out.is_contiguous() && grad_out.scalar_type() == u.scalar_type() && grad_out.dim() == 2 &&
-                  grad_out.size(0) == u.size(0) && grad_out.size(1) == F * C,
-              "vm_fields: grad_out must be a contiguous [N, F * C] tensor of the points' dtype");
+  for (const torch::Tensor* t : {&pre, &grad_out})
+    TORCH_CHECK(t->is_contiguous() && t->scalar_type() == u.scalar_type() && t->dim() == 2 &&
+                    t->size(0) == u.size(0) && t->size(1) == F * C,
+                "vm_fields: pre and grad_out must be contiguous [N, F * C] tensors of the points' dtype");
   std::vector<torch::Tensor> g_u{torch::empty_like(u)}, g_planes, g_lines, g_basis, g_bias;
   for (int64_t f = 0; f < F; ++f) {
     g_planes.push_back(torch::empty_like(planes[f]));
@@ -386,9 +563,10 @@ std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std:
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "vm_fields_backward", [&] {
     const auto fields = channel_last<scalar_t>(planes, lines, basis, bias);
     if (R == 16)
-      backward_impl<scalar_t, 16>(u, fields, R, G, C, grad_out, g_u[0], g_planes, g_lines, g_basis, g_bias);
+      backward_impl<scalar_t, true>(u, pre, fields, R, G, C, grad_out, g_u[0], g_planes, g_lines, g_basis, g_bias);
     else
-      backward_impl<scalar_t, 0>(u, fields, R, G, C, grad_out, g_u[0], g_planes, g_lines, g_basis, g_bias);
+      backward_impl<scalar_t, false>(u, pre, fields, R, G, C, grad_out, g_u[0], g_planes, g_lines, g_basis,
+                                     g_bias);
   });
   return {g_u, g_planes, g_lines, g_basis, g_bias};
 }
