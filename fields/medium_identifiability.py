@@ -47,12 +47,20 @@ altitude) gives every pixel the same ray-mean beta, which a homogeneous medium m
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import asdict, dataclass
 
 import torch
 from torch import Tensor
 
-from uw3dgs.fields.medium_estimate import MediumFit, OpenWater, far_end_color, fit_medium
+from uw3dgs.fields.medium_estimate import (
+    MediumFit,
+    OpenWater,
+    clean_colors,
+    far_end_color,
+    fit_backscatter,
+    fit_medium,
+)
 from uw3dgs.options import CheckedConfig, check_number
 
 CHANNELS = "RGB"
@@ -96,16 +104,31 @@ class IdentifiabilityConfig(CheckedConfig):
     (blue beta_D on the clear Jerlov types, every channel over a narrow span of ranges) scatters alone."""
     spatial_min_points: int = 50
     """Least fitted points in each half for the spatial check (fewer: not run)."""
+    grey_level: float = 1 / 255
+    """One grey level of the images (8-bit): a colour is read to within half of it, so a B_inf under
+    0.5 grey_level / tolerance (3.3 grey levels at 8 bits and 15%) cannot be measured to the tolerance."""
+    color_drift: float = 0.06
+    """A relative change of the surfaces' colours over the span of ranges that is not the water's (the texture
+    blurs with distance, the relief hides and shows shading): beta_D read over a span of tau optical depths moves
+    by about color_drift / tau, so it is flagged where that exceeds the tolerance (under 0.4 optical depths at 6%
+    and 15%). Measured on the synthetic scene (docs/medium-recovery.md): fitted with the true backscatter, beta_D
+    is 0.007-0.012 per unit too high over 6.8 units on every homogeneous variant, a drift of 5-8%."""
+    dark_albedo: float = 0.03
+    """The albedo the darkest surfaces in view may have: a few % for dark rock, sponges and shadowed crevices.
+    Their own light, dark_albedo exp(-beta_D z), is what the backscatter fit would read as backscatter if they
+    are not black: beta_B is flagged where subtracting it from the dark samples moves beta_B by more than the
+    tolerance (the synthetic scene's dark patches are 3%; 2% gives the same verdicts on every benchmark row)."""
 
     def check_options(self) -> None:
         super().check_options()
         for name in ("tolerance", "max_far_transmission", "far_end_tolerance", "spatial_tolerance",
-                     "spatial_noise_factor"):
+                     "spatial_noise_factor", "color_drift", "dark_albedo"):
             check_number(self, name, ge=0)
         check_number(self, "spatial_min_channels", ge=1, le=3, integer=True)
         for name in ("resamples", "steps", "max_observations", "spatial_min_points"):
             check_number(self, name, ge=1, integer=True)
         check_number(self, "far_quantile", gt=0, lt=1)
+        check_number(self, "grey_level", gt=0, lt=1)
 
 
 @dataclass
@@ -153,6 +176,17 @@ class IdentifiabilityReport:
     (this one or the other): ~0 for black surfaces."""
     residual: list[float]
     """[3] the fitted residual term J' (0 where not used)."""
+    dark_floor_shift: list[float]
+    """[3] |beta_B fitted to the dark samples less their own light if they reflect `dark_albedo` - beta_B| / beta_B,
+    both with B_inf held at the estimate (`dark_floor`)."""
+    dark_floor_share: list[float]
+    """[3] that own light at the dark samples' median range, as a share of the fitted backscatter there."""
+    recoverable_range: list[float]
+    """[3] the range (dataset units) beyond which a typical seabed colour (the median de-hazed colour of the fitted
+    points) sends less than one grey level through the water, exp(-beta_D z): the water-free image cannot be
+    recovered from a view farther than that (`recoverable_range`)."""
+    unrecoverable_share: list[float]
+    """[3] the share of the fitted points that no view sees nearer than the recoverable range."""
     tolerance: float
     resamples: int
     checks: list[ParameterCheck]
@@ -177,6 +211,11 @@ class IdentifiabilityReport:
         water = "in view" if self.open_water else "not in view" + (f": {self.open_water_reason}"
                                                                    if self.open_water_reason else "")
         out.append(f"ranges {z10:.2f}-{z90:.2f} (10-90%), {self.dark_samples} backscatter samples, open water {water}")
+        reach = "/".join(f"{z:.1f}" for z in self.recoverable_range)
+        beyond = "/".join(f"{x:.0%}" for x in self.unrecoverable_share)
+        out.append(f"the water-free image is recoverable to range {reach} (R/G/B; beyond it a typical seabed colour "
+                   f"sends under one grey level through the water): {beyond} of the fitted points are seen only "
+                   "beyond it")
         if self.spatial_disagreement is not None:
             halves = "; ".join(f"{name} {'/'.join(f'{x:.0%}' for x in v)}"
                                for name, v in self.spatial_disagreement.items())
@@ -222,6 +261,34 @@ def far_end(z: Tensor, color: Tensor, beta_d: Tensor, quantile: float) -> tuple[
     of the observations beyond z_far, which tends to B_inf as that share goes to 0)."""
     z_far, far_color = far_end_color(z, color, quantile)
     return z_far, torch.exp(-beta_d.double() * z_far).float(), far_color
+
+
+def dark_floor(fit: MediumFit, albedo: float, steps: int) -> tuple[Tensor, Tensor]:
+    """What if the darkest surfaces are not black but reflect `albedo`? Their own light, albedo exp(-beta_D z),
+    would be read as backscatter. Returns ([3] |beta_B fitted to the dark samples less that light - beta_B fitted
+    to them as they are| / the latter, both with B_inf held at `fit`'s; [3] that light at the dark samples' median
+    range as a share of `fit`'s backscatter there)."""
+    z, dark = fit.dark_z, fit.dark_color
+    own = albedo * torch.exp(-fit.beta_d * z[:, None])
+    plain = fit_backscatter(z, dark, b_inf=fit.b_inf, steps=steps)[0].double()
+    lit = fit_backscatter(z, dark - own, b_inf=fit.b_inf, steps=steps)[0].double()
+    z50 = float(z.double().median())
+    back = fit.b_inf.double() * (1 - torch.exp(-fit.beta_b.double() * z50))
+    share = albedo * torch.exp(-fit.beta_d.double() * z50) / back.clamp_min(1e-6)
+    return (lit - plain).abs() / plain.clamp_min(1e-6), share
+
+
+def recoverable_range(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, grey_level: float
+                      ) -> tuple[Tensor, Tensor]:
+    """How far the water-free image can be recovered: ([3] the range beyond which a typical seabed colour J (the
+    median de-hazed colour of the points) sends under one grey level through the water, J exp(-beta_D z) <
+    grey_level, so the images hold no trace of it; [3] the share of the points (ids `point` [M] of the observations
+    color [M, 3] at ranges z [M]) that no view sees nearer than that: their water-free colour is a guess)."""
+    typical = clean_colors(point, color, z, *fit.medium).double().median(dim=0).values
+    reach = torch.log((typical / grey_level).clamp_min(1.0)) / fit.beta_d.double().clamp_min(1e-6)
+    nearest = torch.full((int(point.max()) + 1,), math.inf, dtype=torch.float64).scatter_reduce(
+        0, point, z.double(), "amin")
+    return reach, (nearest[:, None] > reach).double().mean(0)
 
 
 def principal_axes(positions: Tensor) -> Tensor:
@@ -290,6 +357,8 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
     z50 = float(z.double().median())
     excess = with_residual.residual * torch.exp(-with_residual.beta_d * z50) / with_residual.b_inf.clamp_min(1e-3)
     z_far, transmission, far_color = far_end(z, color, fit.beta_d, far_quantile or config.far_quantile)
+    floor_shift, floor_share = dark_floor(fit, config.dark_albedo, config.steps)
+    reach, beyond = recoverable_range(point, color, z, fit, config.grey_level)
     spatial = None if positions is None else spatial_check(point, color, z, positions, fit.b_inf, bins, share,
                                                            residual, config)
     report = IdentifiabilityReport(
@@ -301,7 +370,9 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
         far_range=z_far, far_transmission=transmission.tolist(), far_color=far_color.tolist(),
         spatial_disagreement=spatial, varies_in_space=False, dark_samples=len(fit.dark_z),
         dark_excess=excess.tolist(),
-        residual=fit.residual.tolist(), tolerance=tolerance, resamples=config.resamples, checks=[])
+        residual=fit.residual.tolist(), dark_floor_shift=floor_shift.tolist(), dark_floor_share=floor_share.tolist(),
+        recoverable_range=reach.tolist(), unrecoverable_share=beyond.tolist(), tolerance=tolerance,
+        resamples=config.resamples, checks=[])
     spreads = {}
     for k, name in enumerate(("beta_D", "beta_B", "B_inf")):
         values = torch.stack([f[k] for f in fits]).double()
@@ -315,7 +386,7 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
                       and float(a) <= tolerance
                       for d, s, a in zip(spatial["beta_D"], spreads["beta_D"], shift, strict=True))
         report.varies_in_space = varying >= config.spatial_min_channels
-    checks = {}
+    checks, pinned = {}, {}
     for k, name in reversed(list(enumerate(("beta_D", "beta_B", "B_inf")))):  # B_inf first: the betas depend on it
         estimate = fit.medium[k].double()
         scale = estimate.abs().clamp_min(1e-6)
@@ -329,9 +400,18 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
             reason = f"{', '.join(why)} (> {tolerance:.0%}): {_reason(name, c, report)}" if why else ""
             more = [] if name != "B_inf" or measured else _far_end_reasons(c, float(estimate[c]), fit, report,
                                                                            config)
-            if name != "B_inf" and not checks[("B_inf", c)].identifiable:
+            if name == "B_inf":
+                pinned[c] = not reason and not more
+                more += _resolution_reasons(float(estimate[c]), config)  # under a grey level: the betas keep
+            elif not pinned[c]:
                 more.append("fitted with a B_inf that is not pinned (above): the backscatter it leaves for "
                             "beta_B and beta_D moves with it")
+            if name == "beta_D":
+                more += _drift_reasons(report.optical_depth_span["beta_D"][c], config)
+            if name == "beta_B" and floor_shift[c] > tolerance:
+                more.append(f"{floor_shift[c]:.0%} off if the darkest surfaces reflect {config.dark_albedo:.0%} "
+                            f"(> {tolerance:.0%}): their own light, attenuated with the estimated beta_D, would be "
+                            f"read as backscatter ({floor_share[c]:.0%} of it at the dark samples' median range)")
             if name != "B_inf" and report.varies_in_space:
                 more.append(f"varies in space: the halves of the scene give values {spatial[name][c]:.0%} apart "
                             f"(beta_D {'/'.join(f'{d:.0%}' for d in spatial['beta_D'])}, > "
@@ -341,6 +421,29 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
             checks[(name, c)] = ParameterCheck(name, CHANNELS[c], float(estimate[c]), s, a, not reason, reason)
     report.checks = [checks[(name, c)] for name in ("beta_D", "beta_B", "B_inf") for c in range(3)]
     return report
+
+
+def _resolution_reasons(value: float, config: IdentifiabilityConfig) -> list[str]:
+    """Why a B_inf of `value` cannot be measured to the tolerance: the images round it to whole grey levels, which
+    leaves up to half of one. The error is under what the images resolve, so the betas fitted with it keep their
+    verdicts (unlike a B_inf the far end does not pin)."""
+    half = 0.5 * config.grey_level / max(abs(value), 1e-6)
+    if half <= config.tolerance:
+        return []
+    return [f"it is {value / config.grey_level:.1f} grey levels of the images, whose rounding alone leaves it "
+            f"+-{half:.0%} (> {config.tolerance:.0%}): too faint to measure to the tolerance, and too faint to matter "
+            "(under half a grey level of error)"]
+
+
+def _drift_reasons(depth: float, config: IdentifiabilityConfig) -> list[str]:
+    """Why a beta_D read over a span of `depth` optical depths is not pinned: a drift of the surfaces' colours with
+    range that is not the water's (`color_drift`) moves it by about color_drift / depth."""
+    shift = config.color_drift / max(depth, 1e-6)
+    if shift <= config.tolerance:
+        return []
+    return [f"over {depth:.2f} optical depths a {config.color_drift:.0%} drift of the surfaces' colours with range "
+            f"that is not the water's (texture blurring with distance) would move it by {shift:.0%} "
+            f"(> {config.tolerance:.0%})"]
 
 
 def _far_end_reasons(c: int, value: float, fit: MediumFit, report: IdentifiabilityReport,
