@@ -17,8 +17,9 @@ and with the homogeneous field) it
    centres, and the betas averaged along each test pixel's ray against the true ray mean, what the images see);
 and prints one markdown table: errors in % (R/G/B), the input's and the URI's PSNR against the clean test images,
 the verdict, and whether issue 19's bar is met (identifiable parameters within 15% after training, URI at least
-6 dB closer to the clean truth than the input), then the verdicts' reasons, then for the varying media the three
-field errors and how the trained field varies (its spread and its correlation with the truth at the seabed
+6 dB closer to the clean truth than the input), then the verdicts' reasons, then the URI where the water leaves
+the seabed recoverable (`recoverable_psnr`: within the report's recoverable range), then for the varying media the
+three field errors and how the trained field varies (its spread and its correlation with the truth at the seabed
 points). Each variant's numbers are kept in OUTPUT_DIR/VARIANT/row.json. `--scene KEY=VALUE` sets a scene option
 for every variant (the test: tiny images); `--train-flags` adds uw-train method options to every variant's
 (diagnostics).
@@ -166,9 +167,41 @@ def estimate_row(scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> 
             row["spatial_disagreement"] = report.spatial_disagreement
             row["weak"] = [f"{c.name} {c.channel}" for c in report.checks if not c.identifiable]
             row["reasons"] = [f"{c.name} {c.channel}: {c.reason}" for c in report.checks if not c.identifiable]
+            row["recoverable_range"] = report.recoverable_range
+            row["unrecoverable_share"] = report.unrecoverable_share
     clean = [psnr(b["image"], b["clean_image"]) for b in datamanager.test_batches()]
     row["input_psnr"] = float(torch.stack(clean).mean())
     return row
+
+
+def recoverable_psnr(model, datamanager, reach: list[float]) -> dict[str, float]:
+    """The URI and the input judged where the water leaves the clean image recoverable: PSNR (mean over the test
+    views) over the seabed pixels and channels c that some training view sees nearer than `reach`[c] (dataset
+    units; the report's `recoverable_range`: farther, a typical seabed colour sends under one grey level through the
+    water), and the share of the seabed pixel-channels beyond it (occlusion ignored)."""
+    scene = datamanager.scene
+    cameras = [scene.cameras[i] for i in datamanager.train_indices]
+    reach_t = torch.tensor(reach, dtype=torch.float64)
+    uri, hazy, beyond, total = [], [], 0, 0
+    for batch in datamanager.test_batches():
+        camera, ranges = batch["camera"], batch["range"].double()
+        seen = ranges.isfinite()
+        world = camera.center.double() + camera.ray_directions().double()[seen] * ranges[seen][:, None]
+        nearest = torch.full((len(world),), torch.inf, dtype=torch.float64)
+        for cam in cameras:
+            inside = cam.project(world)[1]
+            nearest = torch.where(inside, torch.minimum(nearest, (world - cam.center.double()).norm(dim=-1)), nearest)
+        mask = torch.zeros(*ranges.shape, 3, dtype=torch.bool)
+        mask[seen] = (nearest * scene.dataset_scale)[:, None] <= reach_t
+        beyond += int(seen.sum()) * 3 - int(mask.sum())
+        total += int(seen.sum()) * 3
+        with torch.no_grad():
+            render = model.get_outputs(camera)["uri"].clamp(0, 1)
+        clean = batch["clean_image"]
+        for store, image in ((uri, render), (hazy, batch["image"])):
+            store.append(-10 * torch.log10((image - clean).double().square()[mask].mean()))
+    return {"uri_psnr": float(torch.stack(uri).mean()), "input_psnr": float(torch.stack(hazy).mean()),
+            "beyond": beyond / max(total, 1)}
 
 
 def train_and_eval(run_root: Path, argv: list[str], steps: int) -> Path:
@@ -225,7 +258,14 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
     if estimate_again:
         re_estimate(name, output_dir, scene_config, cache_dir)
     if path.is_file() and json.loads(path.read_text())["steps"] == steps:
-        return json.loads(path.read_text())
+        row = json.loads(path.read_text())
+        if "recoverable" not in row:  # a row saved before the recoverable range was reported
+            config = sorted((output_dir / name).glob("**/config.yml"))[0]
+            _, datamanager, model, _ = load_trained(config)
+            model.eval()
+            row["recoverable"] = recoverable_psnr(model, datamanager, row["recoverable_range"])
+            path.write_text(json.dumps(row, indent=1))
+        return row
     estimate_path = output_dir / name / "estimate.json"
     if estimate_path.is_file():
         row = json.loads(estimate_path.read_text())
@@ -248,7 +288,7 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
                                                            model.gaussians.means),
                         "errors_ray_mean": ray_mean_errors(datamanager, scene_config, model.ray_betas),
                         "spread": field_spread(datamanager.scene, scene_config, model.medium)},
-               eval=results)
+               eval=results, recoverable=recoverable_psnr(model, datamanager, row["recoverable_range"]))
     path.write_text(json.dumps(row, indent=1))
     return row
 
@@ -322,6 +362,22 @@ def spread_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def recoverable_table(rows: list[dict]) -> list[str]:
+    """How much of the seabed the water leaves recoverable (the report's `recoverable_range`, before training) and
+    the URI judged there as well as on the whole image: the input's and the URI's PSNR against the clean test
+    images over the seabed pixel-channels some training view sees within that range."""
+    lines = ["| variant | recoverable to (R/G/B) | fitted points beyond (%) | test seabed beyond (%) | "
+             "input / URI PSNR there | URI - input there (dB) | whole image (dB) |",
+             "|---|---|---|---:|---:|---:|---:|"]
+    for row in rows:
+        rec = row["recoverable"]
+        lines.append(f"| {row['name']} | {'/'.join(f'{z:.1f}' for z in row['recoverable_range'])} | "
+                     f"{percents(row['unrecoverable_share'])} | {100 * rec['beyond']:.0f} | "
+                     f"{rec['input_psnr']:.2f} / {rec['uri_psnr']:.2f} | {rec['uri_psnr'] - rec['input_psnr']:+.1f} | "
+                     f"{row['uri_psnr'] - row['input_psnr']:+.1f} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=3000, help="training steps of every run (seed 0)")
@@ -344,7 +400,8 @@ def main(argv: list[str] | None = None) -> None:
         overrides[key] = int(value) if fields[key] in (int, "int") else float(value)
     rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir, shlex.split(args.train_flags),
                         args.estimate_again) for name in args.variants]
-    print("\n".join(table(rows) + [""] + field_table(rows) + [""] + spread_table(rows)))
+    print("\n".join(table(rows) + [""] + recoverable_table(rows) + [""] + field_table(rows) + [""]
+                    + spread_table(rows)))
 
 
 if __name__ == "__main__":
