@@ -111,8 +111,9 @@ class IdentifiabilityConfig(CheckedConfig):
     """A relative change of the surfaces' colours over the span of ranges that is not the water's (the texture
     blurs with distance, the relief hides and shows shading): beta_D read over a span of tau optical depths moves
     by about color_drift / tau, so it is flagged where that exceeds the tolerance (under 0.4 optical depths at 6%
-    and 15%). Measured on the synthetic scene (docs/medium-recovery.md): fitted with the true backscatter, beta_D
-    is 0.007-0.012 per unit too high over 6.8 units on every homogeneous variant, a drift of 5-8%."""
+    and 15%). Measured on the synthetic scene's homogeneous variants (docs/medium-recovery.md): fitted with the true
+    backscatter, beta_D is up to 0.012 per unit too high over their 6.8-8.3 units of ranges, a drift of 1-8%
+    (median 6%)."""
     dark_albedo: float = 0.03
     """The albedo the darkest surfaces in view may have: a few % for dark rock, sponges and shadowed crevices.
     Their own light, dark_albedo exp(-beta_D z), is what the backscatter fit would read as backscatter if they

@@ -324,7 +324,12 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     spread = [cells(r) for r in lines if r.count("|") == 7]
     assert spread[2] == ["plume-homogeneous", "0/0/0", "-/-/-", "0/0/0", "-/-/-", spread[2][-1]]
     assert float(spread[2][-1]) > 0  # the UWI's PSNR
+    # and the URI where the water leaves the seabed recoverable (the report's range), as well as on the whole image
+    recoverable = [cells(r) for r in lines if r.count("|") == 8]
+    assert [r[0] for r in recoverable[2:]] == ["default", "plume-homogeneous"]
+    assert all(len(r[1].split("/")) == 3 and 0 <= float(r[3]) <= 100 for r in recoverable[2:])
     saved = json.loads((tmp_path / "default" / "row.json").read_text())
+    assert saved["recoverable"]["uri_psnr"] > 0 and len(saved["recoverable_range"]) == 3
     assert saved["trained"]["spread"]["beta_D"]["corr"] == [None, None, None]  # a flat truth: no correlation
     assert saved["trained"]["errors"]["B_inf"] == pytest.approx(  # B_inf is scored as uw-eval scores it
         [abs(saved["eval"][f"b_inf_{c}"] - t) / t for c, t in zip("rgb", (0.05, 0.25, 0.35), strict=True)], rel=1e-5)

@@ -26,6 +26,7 @@ from uw3dgs.fields.medium_identifiability import (
     assess_medium,
     bootstrap_observations,
     far_end,
+    recoverable_range,
 )
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
@@ -517,3 +518,92 @@ def test_the_built_in_scene_keeps_its_estimate_and_verdicts_and_without_water_re
         torch.testing.assert_close(estimate.b_inf, truth, rtol=0.06, atol=0)
         assert "B_inf B" in weak and "B_inf R" not in weak
         assert all("not off open water" in c.reason for c in report.checks if c.name == "B_inf" and c.reason)
+        # red beta_B, 34% off: the dark patches' own 3% albedo is read as backscatter (issue 19's third miss)
+        assert "beta_B R" in weak and "reflect 3%" in report.checks[3].reason
+
+
+FAST = dict(resamples=5, steps=60, max_observations=4000)
+
+
+def test_a_b_inf_of_a_few_grey_levels_is_flagged_but_its_betas_keep_their_verdicts():
+    """Jerlov type I's red B_inf is 1.4 grey levels of an 8-bit image: read off open water it is 1 (28% off), and no
+    bootstrap sees it. Rounding leaves up to half a grey level, so a B_inf of 2 grey levels is +-25% (> 15%) and
+    flagged, saying so; its error (under half a grey level) is under what the images resolve, so the betas fitted
+    with it are not flagged for it. Green and blue (13 and 77 grey levels) pass."""
+    water = (torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2]), torch.tensor([0.006, 0.05, 0.3]))
+    read = (water[2] * 255).round() / 255  # the open water's 8-bit colour: red 2 grey levels (0.0078, 31% off)
+    _, point, z, _ = underwater_observations(400, 6, (2.0, 12.0), seed=5)
+    clean = 0.9 * torch.rand(400, 3, generator=torch.Generator().manual_seed(5))
+    color = clean[point] * torch.exp(-water[0] * z[:, None]) + water[2] * (1 - torch.exp(-water[1] * z[:, None]))
+    color = (color * 255).round() / 255
+    fit = fit_medium(point, color, z, b_inf=read, residual=False)
+    report = assess_medium(point, color, z, fit, read, 10, 0.01, residual=False, **FAST)
+    b_inf = [c for c in report.checks if c.name == "B_inf"]
+    assert [c.identifiable for c in b_inf] == [False, True, True]
+    assert "2.0 grey levels" in b_inf[0].reason and "+-25%" in b_inf[0].reason
+    assert not any("not pinned" in c.reason for c in report.checks), report.lines()
+    coarse = assess_medium(point, color, z, fit, read, 10, 0.01, residual=False, grey_level=1 / 4095, **FAST)
+    assert "grey levels" not in coarse.checks[6].reason  # 12-bit images resolve it
+
+
+def test_beta_d_over_a_short_span_of_optical_depths_is_flagged_for_colour_drift():
+    """Jerlov type I's green beta_D (0.043 per unit) is read over 0.37 optical depths: a 5-8% drift of the surfaces'
+    colours with range that is not the water's moves it by 15-20% (24% off after training), while the bootstrap
+    and the other backscatter model see nothing. Exact data through water that clear in green (0.03 per unit, 0.24
+    optical depths between the 10% and 90% range) passes the other checks and is flagged for the drift alone, with
+    the span; red and blue (3.2 and 1.6 optical depths) are not, nor is green without drift (`color_drift` 0)."""
+    water = (torch.tensor([0.4, 0.03, 0.2]), torch.tensor([0.3, 0.03, 0.2]), torch.tensor([0.05, 0.25, 0.35]))
+    _, point, z, _ = underwater_observations(400, 6, (2.0, 12.0), seed=6)
+    clean = 0.9 * torch.rand(400, 3, generator=torch.Generator().manual_seed(6))
+    clean[:40] *= 0.001
+    color = clean[point] * torch.exp(-water[0] * z[:, None]) + water[2] * (1 - torch.exp(-water[1] * z[:, None]))
+    fit = fit_medium(point, color, z, b_inf=water[2], residual=False)
+    report = assess_medium(point, color, z, fit, water[2], 10, 0.01, residual=False, **FAST)
+    beta_d = [c for c in report.checks if c.name == "beta_D"]
+    assert [c.identifiable for c in beta_d] == [True, False, True], report.lines()
+    assert beta_d[1].reason.startswith("over 0.24 optical depths a 6% drift") and "by 25%" in beta_d[1].reason
+    assert beta_d[1].spread <= 0.15 and beta_d[1].assumption <= 0.15  # only the drift flags it
+    none = assess_medium(point, color, z, fit, water[2], 10, 0.01, residual=False, color_drift=0.0, **FAST)
+    assert none.checks[1].identifiable
+
+
+def test_beta_b_is_flagged_where_dark_surfaces_own_light_would_be_a_large_share_of_the_backscatter():
+    """No check sees whether the darkest surfaces are black. If they reflect 3% (the synthetic scene's dark
+    patches), their light, attenuated with beta_D, is read as backscatter: where the backscatter is faint (the
+    built-in scene's red, B_inf 0.05) that moves beta_B by about 25% (`no-open-water` red beta_B is 32% off after
+    training), where it is bright (turbid water, B_inf 0.6-0.7) by 3%. The check asks the question of the dark
+    samples, black or not: it flags the faint channel, saying why, and not the bright water."""
+    for medium, flagged in (((TRUE_D, TRUE_B, TRUE_BINF), [True, False, False]),
+                            ((torch.tensor([0.5, 0.5, 0.7]), torch.tensor([0.5, 0.5, 0.7]),
+                              torch.tensor([0.6, 0.7, 0.6])), [False, False, False])):
+        point, color, z = seabed_observations(600, 6, (2.0, 12.0), (0.0, 0.001), seed=2, medium=medium)
+        fit = fit_medium(point, color, z, b_inf=medium[2], residual=False)
+        report = assess_medium(point, color, z, fit, medium[2], 10, 0.01, residual=False, **FAST)
+        assert [s > 0.15 for s in report.dark_floor_shift] == flagged
+        beta_b = [c for c in report.checks if c.name == "beta_B"]
+        assert [not c.identifiable for c in beta_b] == flagged, report.lines()
+        assert all("reflect 3%" in c.reason and "read as backscatter" in c.reason
+                   for c, f in zip(beta_b, flagged, strict=True) if f)
+
+
+def test_the_recoverable_range_is_where_a_typical_seabed_colour_falls_below_one_grey_level():
+    """Beyond ln(255 J) / beta_D a seabed colour J sends under one grey level through the water: the images hold no
+    trace of it. Exact data (clean colours known, so the de-hazed median is J), points each seen at one range: the
+    range per channel is that formula with the median clean colour, and the share of points beyond it is counted;
+    the report prints both."""
+    medium = (torch.tensor([0.6, 0.8, 1.2]), torch.tensor([0.6, 0.8, 1.2]), torch.tensor([0.85, 0.9, 0.85]))
+    g = torch.Generator().manual_seed(7)
+    clean = 0.2 + 0.6 * torch.rand(300, 3, generator=g)
+    point = torch.arange(300).repeat_interleave(3)
+    z = 1 + 9 * torch.rand(300, generator=g)[point] * (0.9 + 0.1 * torch.rand(900, generator=g))
+    color = clean[point] * torch.exp(-medium[0] * z[:, None]) + medium[2] * (1 - torch.exp(-medium[1] * z[:, None]))
+    fit = fit_medium(point, color, z, b_inf=medium[2], residual=False)
+    fit.beta_d, fit.beta_b = medium[0], medium[1]  # the formula, not the fit, is under test
+    reach, beyond = recoverable_range(point, color, z, fit, 1 / 255)
+    expected = torch.log(255 * clean.double().median(dim=0).values) / medium[0].double()
+    torch.testing.assert_close(reach, expected, rtol=1e-3, atol=0)
+    nearest = torch.stack([z[point == p].min() for p in range(300)]).double()
+    torch.testing.assert_close(beyond, (nearest[:, None] > reach).double().mean(0))
+    assert 0.05 < float(beyond[0]) < float(beyond[2]) < 0.95  # blue, the most attenuated, is lost first
+    report = assess_medium(point, color, z, fit, medium[2], 10, 0.01, residual=False, **FAST)
+    assert "recoverable to range" in report.lines()[4] and report.recoverable_range == reach.tolist()
