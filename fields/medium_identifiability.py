@@ -181,7 +181,8 @@ class IdentifiabilityReport:
     """[3] |beta_B fitted to the dark samples less their own light if they reflect `dark_albedo` - beta_B| / beta_B,
     both with B_inf held at the estimate (`dark_floor`)."""
     dark_floor_share: list[float]
-    """[3] that own light at the dark samples' median range, as a share of the fitted backscatter there."""
+    """[3] that own light at the near end of the dark samples' ranges (their 10th percentile), where the backscatter's
+    rise sets beta_B, as a share of the fitted backscatter there."""
     recoverable_range: list[float]
     """[3] the range (dataset units) beyond which a typical seabed colour (the median de-hazed colour of the fitted
     points) sends less than one grey level through the water, exp(-beta_D z): the water-free image cannot be
@@ -267,15 +268,16 @@ def far_end(z: Tensor, color: Tensor, beta_d: Tensor, quantile: float) -> tuple[
 def dark_floor(fit: MediumFit, albedo: float, steps: int) -> tuple[Tensor, Tensor]:
     """What if the darkest surfaces are not black but reflect `albedo`? Their own light, albedo exp(-beta_D z),
     would be read as backscatter. Returns ([3] |beta_B fitted to the dark samples less that light - beta_B fitted
-    to them as they are| / the latter, both with B_inf held at `fit`'s; [3] that light at the dark samples' median
-    range as a share of `fit`'s backscatter there)."""
+    to them as they are| / the latter, both with B_inf held at `fit`'s; [3] that light at the near end of the dark
+    samples' ranges (their 10th percentile), where the backscatter's rise sets beta_B, as a share of `fit`'s
+    backscatter there)."""
     z, dark = fit.dark_z, fit.dark_color
     own = albedo * torch.exp(-fit.beta_d * z[:, None])
     plain = fit_backscatter(z, dark, b_inf=fit.b_inf, steps=steps)[0].double()
     lit = fit_backscatter(z, dark - own, b_inf=fit.b_inf, steps=steps)[0].double()
-    z50 = float(z.double().median())
-    back = fit.b_inf.double() * (1 - torch.exp(-fit.beta_b.double() * z50))
-    share = albedo * torch.exp(-fit.beta_d.double() * z50) / back.clamp_min(1e-6)
+    near = float(torch.quantile(z.double(), 0.1))
+    back = fit.b_inf.double() * (1 - torch.exp(-fit.beta_b.double() * near))
+    share = albedo * torch.exp(-fit.beta_d.double() * near) / back.clamp_min(1e-6)
     return (lit - plain).abs() / plain.clamp_min(1e-6), share
 
 
@@ -412,7 +414,7 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
             if name == "beta_B" and floor_shift[c] > tolerance:
                 more.append(f"{floor_shift[c]:.0%} off if the darkest surfaces reflect {config.dark_albedo:.0%} "
                             f"(> {tolerance:.0%}): their own light, attenuated with the estimated beta_D, would be "
-                            f"read as backscatter ({floor_share[c]:.0%} of it at the dark samples' median range)")
+                            f"read as backscatter ({floor_share[c]:.0%} of it at the near end of their ranges)")
             if name != "B_inf" and report.varies_in_space:
                 more.append(f"varies in space: the halves of the scene give values {spatial[name][c]:.0%} apart "
                             f"(beta_D {'/'.join(f'{d:.0%}' for d in spatial['beta_D'])}, > "

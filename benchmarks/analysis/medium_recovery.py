@@ -299,13 +299,16 @@ def percents(errors: list[float]) -> str:
 
 def verdict(row: dict) -> tuple[str, str]:
     """(the weak parameters or 'identifiable', whether issue 19's bar is met: every parameter and channel the report
-    calls identifiable within 15% after training and the URI 6 dB above the input's PSNR; if not, what missed)."""
+    calls identifiable within 15% after training and the URI 6 dB above the input's PSNR on the whole image; if not,
+    what missed, a URI short of the bar with its gain on the recoverable seabed too)."""
     weak = set(row["weak"])
     misses = [f"{p} {c}" for p in PARAMETERS for c, e in zip("RGB", row["trained"]["errors"][p], strict=True)
               if f"{p} {c}" not in weak and e > BAR]
     gain = row["uri_psnr"] - row["input_psnr"]
-    if gain < GAIN_DB:
-        misses.append(f"URI +{gain:.1f} dB")
+    if gain < GAIN_DB:  # the bar is the whole image's; where the water leaves the seabed recoverable, for reference
+        there = (f" (+{row['recoverable']['uri_psnr'] - row['recoverable']['input_psnr']:.1f} dB where recoverable)"
+                 if "recoverable" in row else "")
+        misses.append(f"URI +{gain:.1f} dB{there}")
     weak_text = "; ".join(f"{p} {''.join(c for c in 'RGB' if f'{p} {c}' in weak)}" for p in PARAMETERS
                           if any(f"{p} {c}" in weak for c in "RGB")) or "identifiable"
     rest = " for the rest" if weak else ""
@@ -347,8 +350,9 @@ def field_table(rows: list[dict]) -> list[str]:
 def spread_table(rows: list[dict]) -> list[str]:
     """The varying-medium rows: how the trained field varies at the seabed points (standard deviation per dataset
     unit, and correlation with the true field; '-' for a flat field), and the UWI's PSNR against the hazy test
-    images (how well the images are fitted)."""
-    rows = [row for row in rows if VARIANTS[row["name"]][0].get("medium_profile", "homogeneous") != "homogeneous"]
+    images (how well the images are fitted); rows saved before the spread was stored are left out."""
+    rows = [row for row in rows if VARIANTS[row["name"]][0].get("medium_profile", "homogeneous") != "homogeneous"
+            and "spread" in row["trained"]]
     if not rows:
         return []
     lines = ["| variant | beta_D std (R/G/B) | beta_D corr with truth | beta_B std | beta_B corr | UWI PSNR |",
