@@ -34,6 +34,19 @@ end of the ranges (`veiling_light_from_far_end`) or fitted, and two more checks 
 
 The betas of a channel whose B_inf is not identifiable are not either: they are fitted with it held.
 
+Three limits no refit shows (docs/medium-recovery.md, "The last three misses, and 9C"):
+
+- resolution: the images round every colour to a grey level (`grey_level`), so a B_inf of a few grey levels is
+  not known to the tolerance (it does not flag the betas: its error is under what their fits resolve);
+- drift: over a span of tau optical depths a change of the surfaces' colours with range that is not the water's
+  (`color_drift`) moves beta_D by about color_drift / tau;
+- dark surfaces that are not black: `dark_floor` refits beta_B to the dark samples less the own light of a
+  `dark_albedo` surface, which no fit can tell from black.
+
+And one statement about the scene rather than the medium: `recoverable_range`, the range beyond which a typical
+seabed colour sends under one grey level through the water, and the share of points no view sees nearer: their
+water-free colour cannot be recovered, however right the medium.
+
 A medium that varies in space (a plume, a turbid layer) is fitted by a homogeneous model as an average, as
 stable under the bootstrap as a homogeneous one. `spatial_check` fits the two halves of the scene along each of
 its two main horizontal axes (the principal axes of the fitted points) on their own, B_inf held at the estimate,
@@ -118,7 +131,8 @@ class IdentifiabilityConfig(CheckedConfig):
     """The albedo the darkest surfaces in view may have: a few % for dark rock, sponges and shadowed crevices.
     Their own light, dark_albedo exp(-beta_D z), is what the backscatter fit would read as backscatter if they
     are not black: beta_B is flagged where subtracting it from the dark samples moves beta_B by more than the
-    tolerance (the synthetic scene's dark patches are 3%; 2% gives the same verdicts on every benchmark row)."""
+    tolerance (the synthetic scene's dark patches are 3%; on the benchmark's rows 2% gives the same verdicts, 5%
+    also flags `no-open-water`'s green beta_B, 13% off)."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -405,7 +419,8 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
                                                                            config)
             if name == "B_inf":
                 pinned[c] = not reason and not more
-                more += _resolution_reasons(float(estimate[c]), config)  # under a grey level: the betas keep
+                # too faint to resolve, but its error (under half a grey level) leaves the betas' verdicts alone
+                more += _resolution_reasons(float(estimate[c]), config)
             elif not pinned[c]:
                 more.append("fitted with a B_inf that is not pinned (above): the backscatter it leaves for "
                             "beta_B and beta_D moves with it")
