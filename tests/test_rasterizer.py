@@ -340,27 +340,31 @@ def test_projection_culls_behind_off_screen_and_faint() -> None:
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: torch.dtype) -> None:
     """PAUP's masked render: the same view with the opacities scaled down (some below alpha_min, so culled by a
-    fresh projection) gives the same render and opacity gradient with the full render's projection: bitwise in
-    the compiled backend, to rounding in the reference (its tiles' padded Gaussian lists grow)."""
+    fresh projection) gives the same render, opacity gradient and per-Gaussian weights with the full render's
+    projection, and in the compiled backend its tile lists: bitwise there, to rounding in the reference (its tiles'
+    padded Gaussian lists grow)."""
     if backend == "cpu" and not cpu_backend.is_available():
         pytest.skip("the compiled backend does not build here")
     scene = random_scene(5, 400)
     settings = RasterSettings(backend=backend)
     means, quats, scales, opacities, features = (t.to(dtype) for t in scene.inputs())
-    full = rasterize(means, quats, scales, opacities, features, scene.camera, settings)
+    # recorded for a backward, as in training: the compiled backend then hands on its tile lists
+    full = rasterize(means, quats, scales, opacities, features.clone().requires_grad_(True), scene.camera, settings)
+    assert (full.tile_lists is not None) == (backend == "cpu")
     keep = torch.rand(len(means), generator=torch.Generator().manual_seed(0), dtype=dtype)
     keep[:50] = 1e-4  # opacity x keep < alpha_min
     weights = torch.randn(full.render.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
 
-    def masked(**reuse) -> tuple[Tensor, Tensor]:
+    def masked(**reuse) -> tuple[Tensor, ...]:
         scaled = keep.clone().requires_grad_(True)
         out = rasterize(means, quats, scales, opacities * scaled, features, scene.camera, settings, **reuse)
         (out.render * weights).sum().backward()
-        return out.render.detach(), scaled.grad
+        return out.render.detach(), scaled.grad, out.weight_sum, out.pixel_count.to(dtype)
 
     fresh, reused = masked(), masked(projection=full)
     assert fresh[0].abs().sum() > 0 and fresh[1].abs().sum() > 0
-    for got, want, name in zip(reused, fresh, ("render", "grad opacities"), strict=True):
+    names = ("render", "grad opacities", "weight_sum", "pixel_count")
+    for got, want, name in zip(reused, fresh, names, strict=True):
         if backend == "cpu":
             assert torch.equal(got, want), name
         else:

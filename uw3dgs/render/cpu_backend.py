@@ -40,7 +40,7 @@ from torch.autograd.function import once_differentiable
 
 from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.render.reference import rasterize_reference
-from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.render.types import RasterOutput, RasterSettings, TileLists
 from uw3dgs.utils.console import info
 
 EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
@@ -228,21 +228,23 @@ class _Project(torch.autograd.Function):
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, depths, radii, width, height, settings):
+    def forward(ctx, means2d, conics, opacities, feats, depths, radii, width, height, settings, tile_lists):
         ext = _state["module"]
         for_backward = any(ctx.needs_input_grad[:4])  # else no state is recorded for a backward
         render, depth, alpha, weight_sum, pixel_count, *state = ext.composite_forward(
             means2d, conics, opacities, feats, depths, radii, width, height, settings.tile_size,
-            settings.alpha_min, settings.alpha_max, settings.transmittance_min, for_backward,
+            settings.alpha_min, settings.alpha_max, settings.transmittance_min, for_backward, list(tile_lists or ()),
         )  # fmt: skip
         ctx.save_for_backward(means2d, conics, opacities, feats, *state)
         ctx.view = (width, height, settings)
-        ctx.mark_non_differentiable(weight_sum, pixel_count)
-        return render, depth, alpha, weight_sum, pixel_count
+        # the state's tile lists (tile starts, sorted Gaussians, their slots, Gaussian starts), for a later render
+        lists = state[1:5] if for_backward else []
+        ctx.mark_non_differentiable(weight_sum, pixel_count, *lists)
+        return render, depth, alpha, weight_sum, pixel_count, *lists
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_render, grad_depth, grad_alpha, _grad_weight_sum, _grad_pixel_count):
+    def backward(ctx, grad_render, grad_depth, grad_alpha, _grad_weight_sum, _grad_pixel_count, *_grad_lists):
         means2d, conics, opacities, feats, *state = ctx.saved_tensors
         width, height, settings = ctx.view
         empty = means2d.new_empty(0)  # stands for a zero gradient: unused outputs cost nothing
@@ -255,7 +257,7 @@ class _Composite(torch.autograd.Function):
         )  # fmt: skip
         if not geometry:
             g_means2d = g_conics = g_feats = None
-        return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None
+        return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None, None
 
 
 def rasterize_cpu(
@@ -278,10 +280,14 @@ def rasterize_cpu(
                                    projection)
     dtype = means.dtype
     opacities, features = (t.to(dtype).contiguous() for t in (opacities, features))
+    tile_lists = None
     if projection is not None:
         means2d, conics, depths = (t.detach().to(dtype).contiguous()
                                    for t in (projection.means2d, projection.conics, projection.depths))
         radii = projection.radii.contiguous()
+        # its tile lists too, when made with these settings: the same outputs as binning again (composite_forward)
+        if projection.tile_lists is not None and projection.tile_lists.tile_size == settings.tile_size:
+            tile_lists = projection.tile_lists.tensors
     else:
         means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
         viewmat = viewmat.detach().to(dtype).contiguous()
@@ -292,8 +298,8 @@ def rasterize_cpu(
                                                         height, settings)  # fmt: skip
     feats = torch.cat([features, depths[:, None]], dim=1)  # depth composites like a feature
     # Separate render / depth / alpha outputs: no slicing, so no zero-fill + copy ops in the backward.
-    render, depth, alpha, weight_sum, pixel_count = _Composite.apply(
-        means2d, conics, opacities, feats, depths.detach(), radii, width, height, settings
+    render, depth, alpha, weight_sum, pixel_count, *lists = _Composite.apply(
+        means2d, conics, opacities, feats, depths.detach(), radii, width, height, settings, tile_lists
     )
     return RasterOutput(
         render=render,
@@ -305,4 +311,5 @@ def rasterize_cpu(
         conics=conics,
         weight_sum=weight_sum,
         pixel_count=pixel_count,
+        tile_lists=TileLists(settings.tile_size, tuple(lists)) if lists else None,
     )

@@ -43,6 +43,17 @@ class RasterSettings(CheckedConfig):
                                            f"got {self.alpha_max:g}")
 
 
+@dataclass(frozen=True)
+class TileLists:
+    """The compiled backend's binning of one render at `tile_size`: `tensors` = (tile starts [tiles + 1] int64,
+    Gaussian of each pair sorted by tile then depth [pairs] int32, each sorted pair's slot [pairs] int64, each
+    Gaussian's first slot [N + 1] int64). A render of the same view and Gaussians with opacities no higher composites
+    over them as over its own (render/csrc/cpu_rasterizer.cpp, composite_forward)."""
+
+    tile_size: int
+    tensors: tuple[Tensor, ...]
+
+
 @dataclass
 class RasterOutput:
     """What one view's rasterization returns.
@@ -55,7 +66,8 @@ class RasterOutput:
     `depths` the camera-space z; `conics` the entries (a, b, c) of the inverse 2D covariance [[a, b], [b, c]];
     `weight_sum` the sum of the Gaussian's blending weights over the view's pixels and `pixel_count` the
     number of pixels it was blended into (both without gradient). A later render of the same view may reuse
-    means2d, conics, depths and radii (`rasterize`'s `projection`).
+    means2d, conics, depths and radii (`rasterize`'s `projection`), and `tile_lists`, its binning, where the
+    compiled backend made it for a backward (else None).
 
     Shapes and types: render [H, W, C]; alpha and depth [H, W]; means2d [N, 2] in pixels, where
     pixel (u, v) has its centre at (u + 0.5, v + 0.5) and a point projects to (fx x/z + cx, fy y/z + cy);
@@ -72,3 +84,4 @@ class RasterOutput:
     conics: Tensor
     weight_sum: Tensor
     pixel_count: Tensor
+    tile_lists: TileLists | None = None

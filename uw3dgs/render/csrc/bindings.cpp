@@ -16,7 +16,8 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
 std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                              torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
                                              int64_t width, int64_t height, int64_t tile_size, double alpha_min,
-                                             double alpha_max, double t_min, bool for_backward);
+                                             double alpha_max, double t_min, bool for_backward,
+                                             std::vector<torch::Tensor> bins_in);
 std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                               torch::Tensor feats, int64_t width, int64_t height, int64_t tile_size,
                                               double alpha_max, std::vector<torch::Tensor> state,

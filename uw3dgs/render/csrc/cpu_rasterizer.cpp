@@ -1036,10 +1036,16 @@ std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor q
 // pixel_count [N] int32, then, when `for_backward`, the state the backward needs: final_t [H, W],
 // tile_starts, sorted_gauss, sorted_slot, gauss_starts, the Gaussian records, pair_codes, tile_codes, and
 // the code buffers.
+// `bins` (tile_starts, sorted_gauss, sorted_slot, gauss_starts of an earlier composite_forward's state, or none):
+// that render's tile lists, reused instead of binning again. Exact when this render is the same view and geometry
+// with opacities no higher (PAUP's masked render): each tile's own list is then a subsequence of the given one in
+// the same order, and a Gaussian in the given list but not in its own can reach alpha_min at no pixel of the tile,
+// so it is skipped there as the per-pixel test skips it (the same outputs and gradients, bit for bit).
 std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
                                              torch::Tensor feats, torch::Tensor depths, torch::Tensor radii,
                                              int64_t width, int64_t height, int64_t tile_size, double alpha_min,
-                                             double alpha_max, double t_min, bool for_backward) {
+                                             double alpha_max, double t_min, bool for_backward,
+                                             std::vector<torch::Tensor> bins_in) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &depths, &radii}) check_cpu(*p, "input");
   const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
@@ -1057,7 +1063,23 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
   torch::Tensor recs;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     recs = gauss_records<scalar_t>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
-    bins = bin_impl<scalar_t>(means2d, depths, radii, records_of<scalar_t>(recs), width, height, tile_size);
+    if (bins_in.empty()) {
+      bins = bin_impl<scalar_t>(means2d, depths, radii, records_of<scalar_t>(recs), width, height, tile_size);
+    } else {
+      bins.tile = tile_size;
+      bins.tiles_x = (width + tile_size - 1) / tile_size;
+      bins.tiles_y = (height + tile_size - 1) / tile_size;
+      TORCH_CHECK(bins_in.size() == 4 && bins_in[0].numel() == bins.tiles_x * bins.tiles_y + 1 &&
+                      bins_in[3].numel() == n + 1 && bins_in[1].numel() == bins_in[2].numel() &&
+                      bins_in[0].scalar_type() == torch::kInt64 && bins_in[1].scalar_type() == torch::kInt32 &&
+                      bins_in[2].scalar_type() == torch::kInt64 && bins_in[3].scalar_type() == torch::kInt64,
+                  "composite_forward: bins must be the tile lists of a render of this view and these Gaussians");
+      for (const auto& t : bins_in) check_cpu(t, "bins");
+      bins.tile_starts = bins_in[0];
+      bins.sorted_gauss = bins_in[1];
+      bins.sorted_slot = bins_in[2];
+      bins.gauss_starts = bins_in[3];
+    }
     const int64_t pairs = bins.sorted_gauss.size(0);
     auto slot_weight = torch::empty({pairs}, opts);
     auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
