@@ -354,6 +354,8 @@ class MediumGrid(MediumField):
         t = (torch.arange(s, device=dirs.device, dtype=dirs.dtype) + 0.5) / s  # [S]
         points = origin + dirs[:, None, :] * (ranges[:, None, None] * t[None, :, None])  # [P, S, 3]
         beta_d, beta_b = self.betas(points.reshape(-1, 3))
+        if s == 1:  # the mean of one sample is the sample: no copy, no backward pass for it
+            return beta_d, beta_b
         return beta_d.view(-1, s, 3).mean(dim=1), beta_b.view(-1, s, 3).mean(dim=1)
 
 
@@ -398,8 +400,8 @@ def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, beta_
     """
     z = ranges[..., None] * dataset_scale
     attenuation = torch.exp(-beta_d * z)
-    a = alpha[..., None]
-    backscatter = b_inf * (a * (1 - torch.exp(-beta_b * z)) + (1 - a))
+    # a (1 - e^(-beta_B z)) + (1 - a), the covered part's backscatter plus open water's, is 1 - a e^(-beta_B z)
+    backscatter = b_inf * (1 - alpha[..., None] * torch.exp(-beta_b * z))
     return {"uwi": radiance * attenuation + backscatter, "attenuation": attenuation, "backscatter": backscatter}
 
 
