@@ -85,7 +85,9 @@ def test_gradcheck_small_scene() -> None:
 
 
 def test_bitwise_deterministic_across_runs_and_threads() -> None:
-    scene = random_scene(8, 3000, 96, 80)
+    """Also the binning's depth sort and tile lists, made in blocks in parallel: enough visible Gaussians and
+    pairs for more than one block at two threads (kParallelMin = 4,096 in cpu_rasterizer.cpp)."""
+    scene = random_scene(8, 12000, 96, 80)
     settings = RasterSettings()
     threads = torch.get_num_threads()
     runs = []
@@ -93,9 +95,11 @@ def test_bitwise_deterministic_across_runs_and_threads() -> None:
         for n_threads in (threads, threads, 1, max(2, threads)):
             torch.set_num_threads(n_threads)
             out, grads = run_with_grads(cpu_backend.rasterize_cpu, scene, torch.float32, settings)
-            runs.append([out.render, out.alpha, out.depth, out.weight_sum, out.pixel_count, *grads.values()])
+            runs.append([out.render, out.alpha, out.depth, out.weight_sum, out.pixel_count, out.radii,
+                         *grads.values()])
     finally:
         torch.set_num_threads(threads)
+    assert int((runs[0][5] > 0).sum()) > 4096  # Gaussians binned
     for other in runs[1:]:
         for a, b in zip(runs[0], other, strict=True):
             assert torch.equal(a, b)

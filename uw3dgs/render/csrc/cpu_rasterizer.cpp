@@ -384,11 +384,16 @@ inline void pixel_span(T centre, T radius, int64_t size, int64_t& first, int64_t
 template <typename T>
 void sort_by_depth(std::vector<int32_t>& ids, const T* depth) {
   using Key = std::conditional_t<sizeof(T) == 4, uint32_t, uint64_t>;
-  const size_t n = ids.size();
+  const int64_t n = ids.size();
   if (n < 2) return;
   std::vector<Key> keys(n), keys2(n);
   std::vector<int32_t> ids2(n);
-  for (size_t i = 0; i < n; ++i) {
+  // Each pass is a stable counting sort of blocks of the array in parallel: per-block digit counts, positions in
+  // (digit, block) order, each block placed in order; the same permutation as one block, whatever their number.
+  const int64_t blocks = n >= kParallelMin ? std::max(1, omp_get_max_threads()) : 1;
+  std::vector<int64_t> start(blocks * 256);
+#pragma omp parallel for schedule(static) if (blocks > 1)
+  for (int64_t i = 0; i < n; ++i) {
     const T d = depth[ids[i]] + static_cast<T>(0);
     Key k;
     std::memcpy(&k, &d, sizeof k);
@@ -396,14 +401,31 @@ void sort_by_depth(std::vector<int32_t>& ids, const T* depth) {
     keys[i] = (k & sign) ? ~k : (k | sign);
   }
   for (size_t shift = 0; shift < 8 * sizeof(Key); shift += 8) {
-    size_t count[257] = {};
-    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 255) + 1];
-    if (count[((keys[0] >> shift) & 255) + 1] == n) continue;  // one digit value: order unchanged
-    for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
-    for (size_t i = 0; i < n; ++i) {
-      const size_t pos = count[(keys[i] >> shift) & 255]++;
-      keys2[pos] = keys[i];
-      ids2[pos] = ids[i];
+#pragma omp parallel for schedule(static, 1) if (blocks > 1)
+    for (int64_t b = 0; b < blocks; ++b) {
+      int64_t* count = &start[b * 256];
+      std::fill(count, count + 256, 0);
+      for (int64_t i = n * b / blocks; i < n * (b + 1) / blocks; ++i) ++count[(keys[i] >> shift) & 255];
+    }
+    const Key first = (keys[0] >> shift) & 255;
+    int64_t same = 0;
+    for (int64_t b = 0; b < blocks; ++b) same += start[b * 256 + first];
+    if (same == n) continue;  // one digit value: order unchanged
+    int64_t pos = 0;
+    for (int d = 0; d < 256; ++d)
+      for (int64_t b = 0; b < blocks; ++b) {
+        const int64_t count = start[b * 256 + d];
+        start[b * 256 + d] = pos;
+        pos += count;
+      }
+#pragma omp parallel for schedule(static, 1) if (blocks > 1)
+    for (int64_t b = 0; b < blocks; ++b) {
+      int64_t* next = &start[b * 256];
+      for (int64_t i = n * b / blocks; i < n * (b + 1) / blocks; ++i) {
+        const int64_t to = next[(keys[i] >> shift) & 255]++;
+        keys2[to] = keys[i];
+        ids2[to] = ids[i];
+      }
     }
     keys.swap(keys2);
     ids.swap(ids2);
@@ -457,27 +479,50 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const t
   for (int64_t i = 0; i < n; ++i) gstart[i + 1] += gstart[i];
   const int64_t pairs = gstart[n];
 
-  b.tile_starts = torch::zeros({n_tiles + 1}, torch::kInt64);
+  // Counting sort by tile over the depth-ordered Gaussians: each tile's list ends up front to back. Blocks of the
+  // depth order are counted and placed in parallel, each block's pairs of a tile after the blocks before it: the
+  // same lists as one block.
+  const int64_t n_vis = ids.size();
+  const int64_t blocks = pairs >= kParallelMin ? std::max(1, omp_get_max_threads()) : 1;
+  std::vector<int64_t> next(blocks * n_tiles, 0);  // per block and tile: its pair count, then its first position
+#pragma omp parallel for schedule(static, 1) if (blocks > 1)
+  for (int64_t blk = 0; blk < blocks; ++blk) {
+    int64_t* count = &next[blk * n_tiles];
+    for (int64_t v = n_vis * blk / blocks; v < n_vis * (blk + 1) / blocks; ++v) {
+      const int32_t g = ids[v];
+      for (int64_t ty = rect[4 * g + 2]; ty <= rect[4 * g + 3]; ++ty)
+        for (int64_t tx = rect[4 * g]; tx <= rect[4 * g + 1]; ++tx) count[ty * b.tiles_x + tx]++;
+    }
+  }
+  b.tile_starts = torch::empty({n_tiles + 1}, torch::kInt64);
   int64_t* tstart = b.tile_starts.data_ptr<int64_t>();
-  for (int32_t g : ids)
-    for (int64_t ty = rect[4 * g + 2]; ty <= rect[4 * g + 3]; ++ty)
-      for (int64_t tx = rect[4 * g]; tx <= rect[4 * g + 1]; ++tx) tstart[ty * b.tiles_x + tx + 1]++;
-  for (int64_t t = 0; t < n_tiles; ++t) tstart[t + 1] += tstart[t];
-
-  // Counting sort by tile over the depth-ordered Gaussians: each tile's list ends up front to back.
+  tstart[0] = 0;
+  for (int64_t t = 0; t < n_tiles; ++t) {
+    int64_t pos = tstart[t];
+    for (int64_t blk = 0; blk < blocks; ++blk) {
+      const int64_t count = next[blk * n_tiles + t];
+      next[blk * n_tiles + t] = pos;
+      pos += count;
+    }
+    tstart[t + 1] = pos;
+  }
   b.sorted_gauss = torch::empty({pairs}, torch::kInt32);
   b.sorted_slot = torch::empty({pairs}, torch::kInt64);
   int32_t* sg = b.sorted_gauss.data_ptr<int32_t>();
   int64_t* ss = b.sorted_slot.data_ptr<int64_t>();
-  std::vector<int64_t> fill(tstart, tstart + n_tiles);
-  for (int32_t g : ids) {
-    int64_t slot = gstart[g];
-    for (int64_t ty = rect[4 * g + 2]; ty <= rect[4 * g + 3]; ++ty)
-      for (int64_t tx = rect[4 * g]; tx <= rect[4 * g + 1]; ++tx) {
-        int64_t pos = fill[ty * b.tiles_x + tx]++;
-        sg[pos] = g;
-        ss[pos] = slot++;
-      }
+#pragma omp parallel for schedule(static, 1) if (blocks > 1)
+  for (int64_t blk = 0; blk < blocks; ++blk) {
+    int64_t* fill = &next[blk * n_tiles];
+    for (int64_t v = n_vis * blk / blocks; v < n_vis * (blk + 1) / blocks; ++v) {
+      const int32_t g = ids[v];
+      int64_t slot = gstart[g];
+      for (int64_t ty = rect[4 * g + 2]; ty <= rect[4 * g + 3]; ++ty)
+        for (int64_t tx = rect[4 * g]; tx <= rect[4 * g + 1]; ++tx) {
+          const int64_t pos = fill[ty * b.tiles_x + tx]++;
+          sg[pos] = g;
+          ss[pos] = slot++;
+        }
+    }
   }
   return b;
 }
