@@ -8,6 +8,7 @@
 #include <torch/extension.h>
 
 #include "exp_f32.h"
+#include "vector_io.h"
 
 #include <algorithm>
 #include <cmath>
@@ -555,14 +556,6 @@ struct Simd<double> {
   using Int = int64_t;
 };
 
-template <typename V, typename T>
-inline V vload(const T* p) {
-  V v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-template <typename V, typename T>
-inline void vstore(T* p, const V& v) { std::memcpy(p, &v, sizeof v); }
 template <typename V, typename T>
 inline V splat(T x) { return V{} + x; }
 

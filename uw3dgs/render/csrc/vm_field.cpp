@@ -12,6 +12,7 @@
 #include <torch/extension.h>
 
 #include "exp_f32.h"
+#include "vector_io.h"
 
 #include <algorithm>
 #include <cmath>
@@ -250,18 +251,6 @@ struct Lanes16<double> {
   typedef double Quarter __attribute__((vector_size(32)));
 };
 
-template <typename V, typename T>
-inline V load(const T* p) {
-  V v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-
-template <typename V, typename T>
-inline void store(T* p, const V& v) {
-  std::memcpy(p, &v, sizeof v);
-}
-
 // Sum of the 16 lanes, halves added pairwise (8 + 8, 4 + 4, then the last four in order).
 template <typename T>
 inline T lane_sum(const typename Lanes16<T>::V& v) {
@@ -292,14 +281,14 @@ inline ModeRead<T, SLOPES> read_mode16(const Cells<T>& cells, const Field<T>& f,
   ModeRead<T, SLOPES> out{};
   for (int dz = 0; dz < 2; ++dz) {
     if (!al.in[dz]) continue;
-    const V src = load<V>(f.line.data() + (M * G + al.i0 + dz) * R);
+    const V src = vload<V>(f.line.data() + (M * G + al.i0 + dz) * R);
     out.lv += al.w[dz] * src;
     if constexpr (SLOPES) out.slin += (dz ? T(1) : T(-1)) * src;
   }
   for (int dy = 0; dy < 2; ++dy)
     for (int dx = 0; dx < 2; ++dx) {
       if (!ar.in[dy] || !ac.in[dx]) continue;
-      const V src = load<V>(f.plane.data() + ((M * G + ar.i0 + dy) * G + ac.i0 + dx) * R);
+      const V src = vload<V>(f.plane.data() + ((M * G + ar.i0 + dy) * G + ac.i0 + dx) * R);
       out.pv += (ar.w[dy] * ac.w[dx]) * src;
       if constexpr (SLOPES) {
         // d w / d row = +-w_col, d w / d col = +-w_row: the bilinear weights' derivatives
@@ -319,7 +308,7 @@ inline void pre_activation16(const Cells<T>& cells, const Field<T>& f, int64_t G
   const V f0 = r0.pv * r0.lv, f1 = r1.pv * r1.lv, f2 = r2.pv * r2.lv;
   for (int64_t c = 0; c < C; ++c) {
     const T* w = f.basis + c * 48;
-    const V s = (load<V>(w) * f0 + load<V>(w + 16) * f1) + load<V>(w + 32) * f2;
+    const V s = (vload<V>(w) * f0 + vload<V>(w + 16) * f1) + vload<V>(w + 32) * f2;
     pre[c] = lane_sum<T>(s) + f.bias[c];
   }
 }
@@ -338,19 +327,19 @@ inline void backward_mode16(const Cells<T>& cells, const Field<T>& f, const T* g
   const V feat = r.pv * r.lv;
   for (int64_t c = 0; c < C; ++c) {
     T* dst = gw + c * 48 + M * R;
-    store(dst, load<V>(dst) + gpre[c] * feat);
+    vstore(dst, vload<V>(dst) + gpre[c] * feat);
   }
   const Axis<T>&ar = cells.row[M], &ac = cells.col[M], &al = cells.lin[M];
   for (int dy = 0; dy < 2; ++dy)
     for (int dx = 0; dx < 2; ++dx) {
       if (!ar.in[dy] || !ac.in[dx]) continue;
       T* dst = gp + ((M * G + ar.i0 + dy) * G + ac.i0 + dx) * R;
-      store(dst, load<V>(dst) + (ar.w[dy] * ac.w[dx]) * gval);
+      vstore(dst, vload<V>(dst) + (ar.w[dy] * ac.w[dx]) * gval);
     }
   for (int dz = 0; dz < 2; ++dz) {
     if (!al.in[dz]) continue;
     T* dst = gl + (M * G + al.i0 + dz) * R;
-    store(dst, load<V>(dst) + al.w[dz] * gline);
+    vstore(dst, vload<V>(dst) + al.w[dz] * gline);
   }
 }
 
@@ -364,9 +353,9 @@ inline void backward_point16(const Cells<T>& cells, const Field<T>& f, const T* 
     const T g = gpre[c];
     const T* w = f.basis + c * 48;
     gb[c] += g;
-    gf0 += load<V>(w) * g;
-    gf1 += load<V>(w + 16) * g;
-    gf2 += load<V>(w + 32) * g;
+    gf0 += vload<V>(w) * g;
+    gf1 += vload<V>(w + 16) * g;
+    gf2 += vload<V>(w + 32) * g;
   }
   V du_lanes[3] = {};
   backward_mode16<T, 0>(cells, f, gpre, G, C, gf0, du_lanes, gp, gl, gw);
