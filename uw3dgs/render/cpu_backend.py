@@ -50,7 +50,7 @@ SOURCES = [Path(__file__).parent / "csrc" / name
 """The rasterizer, the medium's VM field read (fields/vm_kernel.py), the SH colours (render/sh_kernel.py), PAUP's
 phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py) and their Python bindings: one module."""
 HEADERS = sorted((Path(__file__).parent / "csrc").glob("*.h"))
-"""Headers the sources include (exp_f32.h): part of the build's version, and of the wheel."""
+"""Headers the sources include (exp_f32.h, vector_io.h): part of the build's version, and of the wheel."""
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
 """-ffp-contract=off: no fused multiply-adds, so results follow the reference's rounding as closely as possible."""
 
