@@ -431,9 +431,11 @@ def sh_colours_torch(means, center, dc, rest, degree):
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])
 def test_compiled_sh_colours_match_pytorch(dtype, tolerance, degree) -> None:
     """The kernel against GaussianField's PyTorch expression: colours and the gradients of means and coefficients
-    (those above the degree get zero), relative to each tensor's largest value."""
+    (those above the degree get zero), relative to each tensor's largest value; Gaussians with no colour gradient
+    (not seen in the view) get exact zeros, which the kernel writes without working them out."""
     means, center, dc, rest = sh_colour_case(dtype)
     weights = torch.randn(len(means), 3, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    weights[::3] = 0.0
     results = []
     for colours in (sh_colours_torch, sh_colors):
         for t in (means, dc, rest):
@@ -442,6 +444,7 @@ def test_compiled_sh_colours_match_pytorch(dtype, tolerance, degree) -> None:
         (out * weights).sum().backward()
         results.append([out.detach()] + [torch.zeros_like(t) if t.grad is None else t.grad for t in (means, dc, rest)])
     assert bool((results[1][0] == 0).any())  # the clamp is exercised
+    assert all(bool((g[::3] == 0).all()) for g in results[1][1:]) and bool((results[1][2][1::3] != 0).any())
     for a, b in zip(*results, strict=True):
         assert float((a - b).abs().max()) <= tolerance * max(float(b.abs().max()), 1e-30)
 

@@ -118,6 +118,14 @@ void backward_impl(const torch::Tensor& means, const torch::Tensor& center, cons
   T *gm = g_means.data_ptr<T>(), *gd = g_dc.data_ptr<T>(), *gr = g_rest.data_ptr<T>();
 #pragma omp parallel for schedule(static) if (n >= kParallelMin)
   for (int64_t i = 0; i < n; ++i) {
+    T* grest = gr + i * M * 3;
+    const T* gi = gp + 3 * i;
+    if (gi[0] == T(0) && gi[1] == T(0) && gi[2] == T(0)) {  // not seen in the view: every gradient is zero
+      std::fill(gd + 3 * i, gd + 3 * i + 3, T(0));
+      std::fill(grest, grest + M * 3, T(0));
+      std::fill(gm + 3 * i, gm + 3 * i + 3, T(0));
+      continue;
+    }
     T d[3], b[kMaxBases], db[kMaxBases * 3], raw[3], go[3];
     const T norm = direction(mp + 3 * i, cp, d);
     basis<T, true>(degree, d[0], d[1], d[2], b, db);
@@ -125,7 +133,6 @@ void backward_impl(const torch::Tensor& means, const torch::Tensor& center, cons
     expansion(dp + 3 * i, r, b, bases, raw);
     for (int c = 0; c < 3; ++c) go[c] = raw[c] > T(0) ? gp[3 * i + c] : T(0);  // clamp_min's gradient
     for (int c = 0; c < 3; ++c) gd[3 * i + c] = T(C0) * go[c];
-    T* grest = gr + i * M * 3;
     std::fill(grest, grest + M * 3, T(0));
     T gdir[3] = {0, 0, 0};
     for (int k = 0; k < bases - 1; ++k) {
