@@ -131,9 +131,14 @@ class MediumGridConfig(MediumFieldConfig):
     a random basis, and the bias set so the field equals the start: every factor gets image gradients from step 1.
     Use it with factor_penalty 'roughness' (the norm would pull the constant factors to 0, away from the start)."""
     factor_penalty: FactorPenalty = "norm"
-    """The VM factors' term in L_beta, 0.001 x (of both fields): 'norm' (the default, the paper's) = the squared norm
-    of the planes and lines, which pulls them to 0; 'roughness' = the squared differences between neighbouring cells
-    of every plane and line, which is 0 for constant factors (a flat field) and penalises only spatial variation."""
+    """The VM factors' term in L_beta, factor_penalty_weight x (of both fields): 'norm' (the default, the paper's) =
+    the squared norm of the planes and lines, which pulls them to 0; 'roughness' = the squared differences between
+    neighbouring cells of every plane and line, which is 0 for constant factors (a flat field) and penalises only
+    spatial variation."""
+    factor_penalty_weight: float = 0.001
+    """Weight of the factor penalty inside L_beta (>= 0; L_beta itself is then scaled by beta_loss_weight). 0.001 is
+    the paper's weight on the factor norm, also used for the roughness; 0 turns the penalty off
+    (docs/medium-recovery.md, "The roughness weight")."""
     ray_samples: int = 1
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
@@ -148,6 +153,7 @@ class MediumGridConfig(MediumFieldConfig):
         check_number(self, "resolution", ge=2, integer=True)
         check_number(self, "components", ge=1, integer=True)
         check_number(self, "init_std", ge=0)
+        check_number(self, "factor_penalty_weight", ge=0)
         check_number(self, "ray_samples", ge=1, integer=True)
         check_number(self, "box_padding", ge=0)
 
@@ -332,10 +338,12 @@ class MediumGrid(MediumField):
         return [*self.beta_d.parameters(), *self.beta_b.parameters()]
 
     def factor_penalty(self) -> Tensor:
-        """0.001 x both fields' VM factor norms (the paper's L_beta term) or roughness (config.factor_penalty)."""
+        """config.factor_penalty_weight x both fields' VM factor norms (the paper's L_beta term) or roughness
+        (config.factor_penalty)."""
+        weight = self.config.factor_penalty_weight
         if self.config.factor_penalty == "norm":
-            return 0.001 * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
-        return 0.001 * (self.beta_d.factor_roughness() + self.beta_b.factor_roughness())
+            return weight * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
+        return weight * (self.beta_d.factor_roughness() + self.beta_b.factor_roughness())
 
     def normalize(self, x: Tensor) -> Tensor:
         """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""

@@ -16,6 +16,7 @@ from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
 from uw3dgs.fields.vm_kernel import vm_read
 from uw3dgs.metrics.image import psnr
+from uw3dgs.options import OptionError
 from uw3dgs.registry import METHODS
 
 
@@ -259,6 +260,26 @@ def test_factor_roughness_is_the_squared_neighbour_differences():
     by_hand += sum(float((lines[m, r, k + 1] - lines[m, r, k]) ** 2) for m in range(3) for r in range(2)
                    for k in range(3))
     assert float(field.factor_roughness().detach()) == pytest.approx(by_hand, rel=1e-12)
+
+
+@pytest.mark.parametrize("penalty", ["norm", "roughness"])
+def test_factor_penalty_weight_scales_the_penalty(penalty):
+    """factor_penalty_weight multiplies both fields' factor norm or roughness; 0.001 (the paper's) is the default,
+    parsed from --model.medium.factor-penalty-weight, and a negative weight is refused."""
+    assert MediumGridConfig().factor_penalty_weight == 0.001
+    torch.manual_seed(0)
+    medium = MediumGrid(MediumGridConfig(factor_penalty=penalty), torch.zeros(3), torch.ones(3))
+    fields = (medium.beta_d, medium.beta_b)
+    raw = sum(f.factor_norm() if penalty == "norm" else f.factor_roughness() for f in fields).detach()
+    assert float(raw) > 0
+    assert float(medium.factor_penalty().detach()) == pytest.approx(0.001 * float(raw), rel=1e-6)
+    for weight in (0.0, 0.1):
+        medium.config = dataclasses.replace(medium.config, factor_penalty_weight=weight)
+        assert float(medium.factor_penalty().detach()) == pytest.approx(weight * float(raw), rel=1e-6)
+    config = parse_config(["uw3dgs", "--model.medium.factor-penalty-weight", "0.01"])
+    assert config.model.medium.factor_penalty_weight == 0.01
+    with pytest.raises(OptionError, match="factor_penalty_weight must be a finite number >= 0"):
+        MediumGridConfig(factor_penalty_weight=-1.0)
 
 
 def image_like_loss(medium: MediumGrid, seed: int = 0) -> torch.Tensor:
