@@ -1,8 +1,11 @@
 """Where a training step's time goes, by component, for `3dgs`, `uw3dgs-no-paup` and `uw3dgs` on the same Gaussians.
 
-    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive \\
+    MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 \\
       python benchmarks/speed/step_profile.py RUN/config.yml [--downscales 8 4] [--sizes 1.0 0.3] \\
         [--threads 1 2] [--steps 100]
+
+(`OMP_WAIT_POLICY` left unset on a machine the benchmark has to itself: with `passive`, two-thread steps are
+10-25% slower, docs/performance.md.)
 
 RUN is a trained run on a real scene (any method); the Gaussians of its latest checkpoint are the model, and the
 run is not touched. For every downscale of RUN's images, share of its Gaussians (`--sizes`, a random subset) and
