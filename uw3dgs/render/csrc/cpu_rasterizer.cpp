@@ -369,6 +369,25 @@ struct Bins {
   torch::Tensor gauss_starts;  // [N + 1] int64, each Gaussian's contiguous range of unsorted slots
 };
 
+// The tile grid of a width x height image, `tile` pixels a side, its lists not yet made.
+inline Bins tile_grid(int64_t width, int64_t height, int64_t tile) {
+  Bins b;
+  b.tile = tile;
+  b.tiles_x = (width + tile - 1) / tile;
+  b.tiles_y = (height + tile - 1) / tile;
+  return b;
+}
+
+// A render's tile lists handed back: lists[0..3] = tile_starts, sorted_gauss, sorted_slot, gauss_starts.
+inline Bins bins_from(const torch::Tensor* lists, int64_t width, int64_t height, int64_t tile) {
+  Bins b = tile_grid(width, height, tile);
+  b.tile_starts = lists[0];
+  b.sorted_gauss = lists[1];
+  b.sorted_slot = lists[2];
+  b.gauss_starts = lists[3];
+  return b;
+}
+
 template <typename T>
 inline void pixel_span(T centre, T radius, int64_t size, int64_t& first, int64_t& last) {
   T f = std::ceil(centre - radius - static_cast<T>(0.5));
@@ -440,10 +459,7 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& depths, const t
   const T* m2 = means2d.data_ptr<T>();
   const T* dp = depths.data_ptr<T>();
   const int32_t* rad = radii.data_ptr<int32_t>();
-  Bins b;
-  b.tile = tile;
-  b.tiles_x = (width + tile - 1) / tile;
-  b.tiles_y = (height + tile - 1) / tile;
+  Bins b = tile_grid(width, height, tile);
   const int64_t n_tiles = b.tiles_x * b.tiles_y;
 
   // Visible Gaussians front to back, ties by index (the reference's stable argsort).
@@ -1104,19 +1120,14 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
     if (bins_in.empty()) {
       bins = bin_impl<scalar_t>(means2d, depths, radii, records_of<scalar_t>(recs), width, height, tile_size);
     } else {
-      bins.tile = tile_size;
-      bins.tiles_x = (width + tile_size - 1) / tile_size;
-      bins.tiles_y = (height + tile_size - 1) / tile_size;
+      bins = tile_grid(width, height, tile_size);
       TORCH_CHECK(bins_in.size() == 4 && bins_in[0].numel() == bins.tiles_x * bins.tiles_y + 1 &&
                       bins_in[3].numel() == n + 1 && bins_in[1].numel() == bins_in[2].numel() &&
                       bins_in[0].scalar_type() == torch::kInt64 && bins_in[1].scalar_type() == torch::kInt32 &&
                       bins_in[2].scalar_type() == torch::kInt64 && bins_in[3].scalar_type() == torch::kInt64,
                   "composite_forward: bins must be the tile lists of a render of this view and these Gaussians");
       for (const auto& t : bins_in) check_cpu(t, "bins");
-      bins.tile_starts = bins_in[0];
-      bins.sorted_gauss = bins_in[1];
-      bins.sorted_slot = bins_in[2];
-      bins.gauss_starts = bins_in[3];
+      bins = bins_from(bins_in.data(), width, height, tile_size);
     }
     const int64_t pairs = bins.sorted_gauss.size(0);
     auto slot_weight = torch::empty({pairs}, opts);
@@ -1157,14 +1168,7 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
   const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
   const torch::Tensor& final_t = state[0];
-  Bins bins;
-  bins.tile = tile_size;
-  bins.tiles_x = (width + tile_size - 1) / tile_size;
-  bins.tiles_y = (height + tile_size - 1) / tile_size;
-  bins.tile_starts = state[1];
-  bins.sorted_gauss = state[2];
-  bins.sorted_slot = state[3];
-  bins.gauss_starts = state[4];
+  const Bins bins = bins_from(state.data() + 1, width, height, tile_size);
   const torch::Tensor& recs = state[5];
   Trace trace;
   trace.pair_codes = state[6];

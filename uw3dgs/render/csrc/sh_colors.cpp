@@ -131,7 +131,7 @@ void backward_impl(const torch::Tensor& means, const torch::Tensor& center, cons
     basis<T, true>(degree, d[0], d[1], d[2], b, db);
     const T* r = rp + i * M * 3;
     expansion(dp + 3 * i, r, b, bases, raw);
-    for (int c = 0; c < 3; ++c) go[c] = raw[c] > T(0) ? gp[3 * i + c] : T(0);  // clamp_min's gradient
+    for (int c = 0; c < 3; ++c) go[c] = raw[c] > T(0) ? gi[c] : T(0);  // clamp_min's gradient
     for (int c = 0; c < 3; ++c) gd[3 * i + c] = T(C0) * go[c];
     std::fill(grest, grest + M * 3, T(0));
     T gdir[3] = {0, 0, 0};
