@@ -28,6 +28,7 @@ from uw3dgs.fields.medium_identifiability import (
     far_end,
     recoverable_range,
 )
+from uw3dgs.options import OptionError
 
 TRUE_D, TRUE_B = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
 TRUE_BINF = torch.tensor([0.05, 0.25, 0.35])  # the built-in scene's medium
@@ -611,3 +612,11 @@ def test_the_recoverable_range_is_where_a_typical_seabed_colour_falls_below_one_
     assert 0.05 < float(beyond[0]) < float(beyond[2]) < 0.95  # blue, the most attenuated, is lost first
     report = assess_medium(point, color, z, fit, medium[2], 10, 0.01, residual=False, **FAST)
     assert "recoverable to range" in report.lines()[4] and report.recoverable_range == reach.tolist()
+
+
+@pytest.mark.parametrize(("option", "value"), [("grey_level", 0.0), ("grey_level", 1.0), ("color_drift", -0.1),
+                                               ("dark_albedo", -0.01)])
+def test_the_report_refuses_an_option_out_of_range_naming_it(option, value):
+    """The last checks' knobs (`--model.medium.identifiability.*`) are checked when the config is built."""
+    with pytest.raises(OptionError, match=option):
+        IdentifiabilityConfig(**{option: value})
