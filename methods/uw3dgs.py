@@ -37,7 +37,7 @@ from uw3dgs.options import check_number
 from uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import rasterize
+from uw3dgs.render import masked_l1, rasterize
 from uw3dgs.render.sh import rgb_to_sh
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig
 from uw3dgs.utils.console import info
@@ -198,8 +198,8 @@ class UW3DGSModel(GaussianSplattingModel):
         """Training render with PAUP: `render`'s outputs (the UWI is formed from this full I_UR, as evaluation
         renders it), plus 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered frozen with their opacities
         times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i; `--model.paup.mask`), so
-        L_PAPSL trains the scorer alone; and 'pus', 'floater_probability' [N]. Refreshes the statistics first
-        when they are due."""
+        L_PAPSL trains the scorer alone, and 'uri_enhanced_l1', L1(I_UR, I_UR^Enh) (`render_masked`); and 'pus',
+        'floater_probability' [N]. Refreshes the statistics first when they are due."""
         if self.paup.refresh_due:
             with section("PAUP: statistics"):
                 self.refresh_paup_statistics(camera)
@@ -209,11 +209,24 @@ class UW3DGSModel(GaussianSplattingModel):
             pus, m = self.paup.scores()
             c = self.config.paup
             keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
-            # the same view and geometry with opacities scaled down: the full render's projection holds
-            outputs["uri_enhanced"] = self.render(camera, keep=keep, frozen=True, colors=outputs["colors"],
-                                                  projection=outputs["raster"])["radiance"]
+            outputs["uri_enhanced"], outputs["uri_enhanced_l1"] = self.render_masked(camera, keep, outputs)
         outputs.update(pus=pus, floater_probability=m)
         return outputs
+
+    def render_masked(self, camera: Camera, keep: Tensor, full: dict[str, Any]) -> tuple[Tensor, Tensor]:
+        """(I_UR^Enh [H, W, 3], L1(I_UR, I_UR^Enh) = mean |I_UR - I_UR^Enh|): the Gaussians of the full render `full`
+        (`render`'s outputs) again, frozen, with their opacities times `keep` [N]; the L1 carries a gradient to `keep`
+        only. The same view and geometry with opacities scaled down, so the full render's projection and tile lists
+        hold. One compiled pass where the backend has it (`rasterize.masked_l1`), else a render and the mean."""
+        target = full["radiance"].detach()
+        with torch.no_grad():
+            opacities = torch.sigmoid(self.gaussians.opacities)  # as `render` activates them
+        fused = masked_l1(full["raster"], opacities * keep, full["colors"], target, camera, self.config.raster)
+        if fused is not None:
+            return fused
+        enhanced = self.render(camera, keep=keep, frozen=True, colors=full["colors"],
+                               projection=full["raster"])["radiance"]
+        return enhanced, (target - enhanced).abs().mean()
 
     def nearest_train_cameras(self, camera: Camera, count: int) -> list[Camera]:
         """The `count` training cameras whose centres are nearest `camera`'s (itself included when it is one)."""
@@ -278,8 +291,7 @@ class UW3DGSModel(GaussianSplattingModel):
                 losses["depth_loss"] = c.depth_loss_weight * self.depth_consistency(outputs, batch["camera"])
         if "uri_enhanced" in outputs:
             with section("loss: L_PAPSL"):
-                losses["paup_loss"] = self.paup.loss(outputs["uri"].detach(), outputs["uri_enhanced"],
-                                                     outputs["floater_probability"])
+                losses["paup_loss"] = self.paup.loss(outputs["uri_enhanced_l1"], outputs["floater_probability"])
         return losses
 
     @staticmethod

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import socket
 import subprocess
@@ -17,7 +18,7 @@ from test_rasterizer import Scene, assert_matches_reference, brute_force, random
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.render import RasterSettings, cpu_backend, rasterize
+from uw3dgs.render import RasterSettings, cpu_backend, masked_l1, rasterize
 from uw3dgs.render.rasterize import BACKENDS, select_backend
 from uw3dgs.render.reference import rasterize_reference
 
@@ -140,6 +141,70 @@ def test_opacity_only_backward_equals_full(dtype: torch.dtype) -> None:
     assert torch.equal(alone, opacity_grad(cpu_backend.rasterize_cpu, geometry=True))
     tol = 1e-10 if dtype == F64 else 1e-4
     torch.testing.assert_close(alone, opacity_grad(rasterize_reference, geometry=False), rtol=tol, atol=tol)
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["f64", "f32"])
+@pytest.mark.parametrize("reuse_lists", [True, False], ids=["lists", "binned"])
+def test_masked_l1_equals_render_then_mean(dtype: torch.dtype, reuse_lists: bool) -> None:
+    """PAUP's masked render and its L1 in one pass (`masked_l1`): the render is the compiled frozen render's with
+    the full render's projection, bit for bit; the L1 and its gradient in the keep mask are autograd's through that
+    render and the reference's, to rounding (the per-pixel gradient's 1 / (H W C) is applied after the sums, the
+    L1 summed in double); the same bits at any thread count."""
+    scene = random_scene(5, 3000, 96, 80)
+    settings = RasterSettings(backend="cpu")
+    means, quats, scales, opacities, features = (t.to(dtype) for t in scene.inputs())
+    full = rasterize(means, quats, scales, opacities, features.clone().requires_grad_(True), scene.camera, settings)
+    projection = full if reuse_lists else dataclasses.replace(full, tile_lists=None)
+    target = full.render.detach()  # as in training: where no kept-less Gaussian reaches, the difference is 0
+    keep = torch.rand(len(means), generator=torch.Generator().manual_seed(0), dtype=dtype)
+    keep[keep > 0.05] = 1.0  # as in training, most Gaussians kept whole: some pixels the same in both renders
+    keep[:50] = 1e-4  # opacity x keep < alpha_min
+
+    def fused(target: Tensor = target) -> tuple[Tensor, Tensor, Tensor]:
+        scaled = keep.clone().requires_grad_(True)
+        image, l1 = masked_l1(projection, opacities * scaled, features, target, scene.camera, settings)
+        (0.1 * l1).backward()
+        return image, l1.detach(), scaled.grad
+
+    def unfused(backend: str, target: Tensor = target) -> tuple[Tensor, Tensor, Tensor]:
+        scaled = keep.clone().requires_grad_(True)
+        out = rasterize(means, quats, scales, opacities * scaled, features, scene.camera,
+                        RasterSettings(backend=backend), projection=full)
+        l1 = (target - out.render).abs().mean()
+        (0.1 * l1).backward()
+        return out.render.detach(), l1.detach(), scaled.grad
+
+    image, l1, grad = fused()
+    render, want_l1, want_grad = unfused("cpu")
+    assert torch.equal(image, render) and not image.requires_grad
+    assert grad.abs().sum() > 0 and bool((target != image).any()) and bool((target == image).any())
+    tol = 1e-12 if dtype == F64 else 1e-5
+    torch.testing.assert_close(l1, want_l1, rtol=tol, atol=0)
+    torch.testing.assert_close(grad, want_grad, rtol=tol, atol=tol * float(want_grad.abs().max()))
+    # against the reference, a target away from both renders: where they agree with it exactly, their rounding
+    # differences would pick different sides of |.|'s kink
+    target = target + 0.1 * torch.randn(target.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    _, l1, grad = fused(target)
+    _, ref_l1, ref_grad = unfused("torch", target)
+    tol = 1e-10 if dtype == F64 else 1e-4
+    torch.testing.assert_close(l1, ref_l1, rtol=tol, atol=0)
+    torch.testing.assert_close(grad, ref_grad, rtol=tol, atol=tol * float(ref_grad.abs().max()))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1 if threads > 1 else 2)
+        again = fused(target)
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(fused(target), again, strict=True):
+        assert torch.equal(a, b)
+
+
+def test_masked_l1_is_none_where_the_backend_has_no_fused_pass() -> None:
+    scene = random_scene(5, 50)
+    full = rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="torch"))
+    target = torch.zeros(30, 40, 3, dtype=F64)
+    assert masked_l1(full, scene.opacities, scene.features, target, scene.camera, RasterSettings(backend="torch")) \
+        is None
 
 
 def test_means2d_grad_and_empty_scene() -> None:

@@ -179,10 +179,11 @@ class PAUP(nn.Module):
         unmeasured): each Gaussian's weight in the composited depth and in L_z."""
         return (1.0 - self._filled_statistics()[2]).clamp(0.0, 1.0)
 
-    def loss(self, uri: Tensor, uri_enhanced: Tensor, floater_probability: Tensor) -> Tensor:
-        """Weighted L_PAPSL (scalar): L1(I_UR, I_UR^Enh) + lambda_s mean_i(1 - m_i) + lambda_w ||phi||^2."""
+    def loss(self, image_l1: Tensor, floater_probability: Tensor) -> Tensor:
+        """Weighted L_PAPSL (scalar): L1(I_UR, I_UR^Enh) + lambda_s mean_i(1 - m_i) + lambda_w ||phi||^2, given the
+        first term, `image_l1` (the mean absolute difference, computed with the masked render)."""
         c = self.config
-        return c.loss_weight * ((uri - uri_enhanced).abs().mean() + c.keep_penalty * (1 - floater_probability).mean()
+        return c.loss_weight * (image_l1 + c.keep_penalty * (1 - floater_probability).mean()
                                 + c.mlp_penalty * self.scorer.weight_penalty())
 
     # -- hard pruning (uw3dgs.strategy.ExtraPruning) --

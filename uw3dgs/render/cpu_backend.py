@@ -260,6 +260,44 @@ class _Composite(torch.autograd.Function):
         return g_means2d, g_conics, g_opacities, g_feats, None, None, None, None, None, None
 
 
+class _MaskedL1(torch.autograd.Function):
+    """PAUP's masked render and its L1 to a target in one compiled pass (csrc masked_l1): the forward already has the
+    opacities' gradient, so the backward only scales it."""
+
+    @staticmethod
+    def forward(ctx, opacities, means2d, conics, features, depths, radii, target, width, height, settings, tile_lists):
+        image, l1, grad = _state["module"].masked_l1(
+            means2d, conics, opacities, features, depths, radii, width, height, settings.tile_size,
+            settings.alpha_min, settings.alpha_max, settings.transmittance_min, list(tile_lists or ()), target,
+        )  # fmt: skip
+        ctx.save_for_backward(grad)
+        ctx.mark_non_differentiable(image)
+        return image, l1
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, _grad_image, grad_l1):
+        (grad,) = ctx.saved_tensors
+        return grad * grad_l1, None, None, None, None, None, None, None, None, None, None
+
+
+def masked_l1_cpu(projection: RasterOutput, opacities: Tensor, features: Tensor, target: Tensor, width: int,
+                  height: int, settings: RasterSettings) -> tuple[Tensor, Tensor] | None:
+    """`rasterize.masked_l1` on the compiled backend; None where it does not run (not a CPU float tensor, a tile
+    larger than MAX_TILE, no build)."""
+    unsupported = opacities.device.type != "cpu" or opacities.dtype not in (torch.float32, torch.float64)
+    if unsupported or settings.tile_size > MAX_TILE or load_extension() is None:
+        return None
+    dtype = opacities.dtype
+    means2d, conics, depths = (t.detach().to(dtype).contiguous()
+                               for t in (projection.means2d, projection.conics, projection.depths))
+    lists = projection.tile_lists
+    lists = lists.tensors if lists is not None and lists.tile_size == settings.tile_size else None
+    return _MaskedL1.apply(opacities.contiguous(), means2d, conics, features.detach().to(dtype).contiguous(), depths,
+                           projection.radii.contiguous(), target.detach().to(dtype).contiguous(), width, height,
+                           settings, lists)
+
+
 def rasterize_cpu(
     means: Tensor,
     quats: Tensor,

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from uw3dgs.cameras import Camera
 from uw3dgs.render import gsplat_backend
-from uw3dgs.render.cpu_backend import rasterize_cpu
+from uw3dgs.render.cpu_backend import masked_l1_cpu, rasterize_cpu
 from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.types import RasterOutput, RasterSettings
 
@@ -92,6 +92,20 @@ def rasterize(
     backend = BACKENDS[select_backend(settings.backend, means.device)]
     view = (camera.viewmat, camera.K, camera.width, camera.height)
     return backend(means, quats, scales, opacities, features, *view, settings, projection)
+
+
+def masked_l1(projection: RasterOutput, opacities: Tensor, features: Tensor, target: Tensor, camera: Camera,
+              settings: RasterSettings = RasterSettings()) -> tuple[Tensor, Tensor] | None:
+    """PAUP's masked render and its loss in one pass: (render [H, W, C], mean |target - render|), the Gaussians of
+    `projection` (an earlier render of this view, its screen-space Gaussians and tile lists reused; the same rule
+    as `rasterize`'s `projection`) with `opacities` [N] (at most the earlier ones) and `features` [N, C], frozen:
+    the mean carries a gradient to `opacities` only, the render none. The same numbers, to float rounding, as
+    `rasterize` with that projection followed by the mean (tests/test_cpu_backend.py), without keeping the
+    render's trace for a backward. None where the selected backend has no fused pass (all but 'cpu'): render and
+    take the mean instead."""
+    if select_backend(settings.backend, opacities.device) != "cpu":
+        return None
+    return masked_l1_cpu(projection, opacities, features, target, camera.width, camera.height, settings)
 
 
 register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), priority=0)

@@ -23,6 +23,10 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
                                               double alpha_max, std::vector<torch::Tensor> state,
                                               torch::Tensor grad_render, torch::Tensor grad_depth,
                                               torch::Tensor grad_alpha, bool all_inputs);
+std::vector<torch::Tensor> masked_l1(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
+                                     torch::Tensor feats, torch::Tensor depths, torch::Tensor radii, int64_t width,
+                                     int64_t height, int64_t tile_size, double alpha_min, double alpha_max,
+                                     double t_min, std::vector<torch::Tensor> bins_in, torch::Tensor target);
 int num_threads();
 std::vector<torch::Tensor> vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes,
                                              std::vector<torch::Tensor> lines, std::vector<torch::Tensor> basis,
@@ -50,6 +54,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_backward", &project_backward);
   m.def("composite_forward", &composite_forward);
   m.def("composite_backward", &composite_backward);
+  m.def("masked_l1", &masked_l1);
   m.def("num_threads", &num_threads);
   m.def("vm_fields_forward", &vm_fields_forward);
   m.def("vm_fields_backward", &vm_fields_backward);
