@@ -4,6 +4,8 @@
 // 2^q in its own type (a normal float for |q| <= 126, i.e. x in about [-87, 87]).
 #pragma once
 
+#include <cstdint>
+
 template <typename V>
 inline V exp_f32_reduced(V x, V& q) {
   q = x * 1.442695040888963407359924681001892137f;
@@ -16,4 +18,14 @@ inline V exp_f32_reduced(V x, V& q) {
   u = u * s + 0.166666671633720397949219f;
   u = u * s + 0.5f;
   return 1.0f + ((s * s) * u + s);
+}
+
+// e^x for float x in [-87, 87] (callers clamp), in arithmetic that vectorises in a SIMD loop.
+inline float exp_f32(float x) {
+  float q;
+  const float u = exp_f32_reduced(x, q);
+  const int32_t bits = (static_cast<int32_t>(q) + 127) << 23;  // 2^q
+  float scale;
+  __builtin_memcpy(&scale, &bits, sizeof scale);
+  return u * scale;
 }

@@ -1,9 +1,12 @@
 // Compiled CPU forward and backward of PAUP's phi: m_i = sigmoid(sum_j w2_j relu(w1_j x_i + b1_j) + b2), a 2-layer
 // MLP of one input (the score PUS_i) per Gaussian (uw3dgs/paup/scorer.py). PyTorch forms the [N, H] hidden layer,
-// its ReLU and their gradients as whole arrays, several passes over N x H values; here each Gaussian's H units stay
-// in registers. The weights' gradients are summed in double per chunk of Gaussians, the chunks fixed by N alone,
-// and the chunks reduced in order: bitwise identical results whatever the thread count.
+// its ReLU and their gradients as whole arrays, several passes over N x H values; here the forward sums a block of
+// Gaussians unit by unit in SIMD registers (no sums across lanes), and so does the backward. The weights' gradients
+// are summed in double per block and chunk of Gaussians, both fixed by N alone, and the chunks reduced in order:
+// bitwise identical results whatever the thread count.
 #include <torch/extension.h>
+
+#include "exp_f32.h"
 
 #include <algorithm>
 #include <cmath>
@@ -17,23 +20,33 @@ constexpr int64_t kMaxChunks = 8;
 
 int64_t num_chunks(int64_t n) { return std::max<int64_t>(1, std::min<int64_t>(kMaxChunks, n / kChunk)); }
 
-template <typename T>
-inline T output(T x, const T* w1, const T* b1, const T* w2, T b2, int64_t h) {
-  T s = 0;
-#pragma omp simd reduction(+ : s)
-  for (int64_t j = 0; j < h; ++j) s += w2[j] * std::max(w1[j] * x + b1[j], T(0));
-  return T(1) / (T(1) + std::exp(-(s + b2)));
-}
+constexpr int64_t kBlock = 256;  // Gaussians whose hidden layers are summed together (SIMD across Gaussians)
+
+// sigmoid(z) = 1 / (1 + e^-z); float: e^-z in arithmetic that vectorises (exp_f32.h), clamped to [-87, 87]
+// (sigmoid there is 1 - 1.6e-38 or 1.6e-38; the exact value is within 2e-38).
+inline float sigmoid(float z) { return 1.0f / (1.0f + exp_f32(std::min(std::max(-z, -87.0f), 87.0f))); }
+inline double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
 
 template <typename T>
 void forward_impl(const torch::Tensor& x, const torch::Tensor& w1, const torch::Tensor& b1, const torch::Tensor& w2,
                   const torch::Tensor& b2, torch::Tensor& m) {
-  const int64_t n = x.size(0), h = w1.size(0);
+  const int64_t n = x.size(0), h = w1.size(0), blocks = (n + kBlock - 1) / kBlock;
   const T *xp = x.data_ptr<T>(), *w1p = w1.data_ptr<T>(), *b1p = b1.data_ptr<T>(), *w2p = w2.data_ptr<T>();
   const T b2v = b2.data_ptr<T>()[0];
   T* mp = m.data_ptr<T>();
 #pragma omp parallel for schedule(static) if (n >= kChunk)
-  for (int64_t i = 0; i < n; ++i) mp[i] = output(xp[i], w1p, b1p, w2p, b2v, h);
+  for (int64_t block = 0; block < blocks; ++block) {
+    const int64_t i0 = block * kBlock, nb = std::min(kBlock, n - i0);
+    const T* xb = xp + i0;
+    T s[kBlock] = {};
+    for (int64_t j = 0; j < h; ++j) {  // unit by unit over a block of Gaussians: no sums across SIMD lanes
+      const T a = w1p[j], b = b1p[j], c = w2p[j];
+#pragma omp simd
+      for (int64_t i = 0; i < nb; ++i) s[i] += c * std::max(a * xb[i] + b, T(0));
+    }
+#pragma omp simd
+    for (int64_t i = 0; i < nb; ++i) mp[i0 + i] = sigmoid(s[i] + b2v);
+  }
 }
 
 template <typename T>
@@ -49,22 +62,37 @@ void backward_impl(const torch::Tensor& x, const torch::Tensor& w1, const torch:
 #pragma omp parallel for schedule(static, 1) if (n >= kChunk)
   for (int64_t chunk = 0; chunk < chunks; ++chunk) {
     double *gw1 = acc.data() + chunk * stride, *gb1 = gw1 + h, *gw2 = gb1 + h;
-    for (int64_t i = n * chunk / chunks; i < n * (chunk + 1) / chunks; ++i) {
-      const T gz = gp[i] * mp[i] * (T(1) - mp[i]);  // through the sigmoid
-      const T xi = xp[i];
-      T dx = 0;
-#pragma omp simd reduction(+ : dx)
-      for (int64_t j = 0; j < h; ++j) {  // branch-free, so the units vectorize: inactive ones add zeros
-        const T pre = w1p[j] * xi + b1p[j];
-        const T on = pre > T(0) ? T(1) : T(0);
-        const T gpre = gz * w2p[j] * on;
-        gw2[j] += gz * pre * on;
-        gw1[j] += gpre * xi;
-        gb1[j] += gpre;
-        dx += gpre * w1p[j];
+    const int64_t end = n * (chunk + 1) / chunks;
+    for (int64_t i0 = n * chunk / chunks; i0 < end; i0 += kBlock) {  // as the forward: unit by unit over a block
+      const int64_t nb = std::min(kBlock, end - i0);
+      const T* xb = xp + i0;
+      T gz[kBlock], dx[kBlock];
+      double sum_gz = 0;
+#pragma omp simd reduction(+ : sum_gz)
+      for (int64_t i = 0; i < nb; ++i) {
+        gz[i] = gp[i0 + i] * mp[i0 + i] * (T(1) - mp[i0 + i]);  // through the sigmoid
+        dx[i] = 0;
+        sum_gz += gz[i];
       }
-      gw2[h] += gz;
-      gx[i] = dx;
+      for (int64_t j = 0; j < h; ++j) {
+        const T a = w1p[j], b = b1p[j], c = w2p[j];
+        double s_w1 = 0, s_b1 = 0, s_w2 = 0;
+#pragma omp simd reduction(+ : s_w1, s_b1, s_w2)
+        for (int64_t i = 0; i < nb; ++i) {  // branch-free: inactive units add zeros
+          const T pre = a * xb[i] + b;
+          const T on = pre > T(0) ? T(1) : T(0);
+          const T gpre = gz[i] * c * on;
+          s_w2 += gz[i] * pre * on;
+          s_w1 += gpre * xb[i];
+          s_b1 += gpre;
+          dx[i] += gpre * a;
+        }
+        gw1[j] += s_w1;
+        gb1[j] += s_b1;
+        gw2[j] += s_w2;
+      }
+      gw2[h] += sum_gz;
+      std::copy(dx, dx + nb, gx + i0);
     }
   }
   for (int64_t chunk = 1; chunk < chunks; ++chunk)  // in order: the sums do not depend on the threads

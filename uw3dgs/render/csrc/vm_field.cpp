@@ -160,13 +160,7 @@ inline void softplus_inplace(float* x, int64_t n) {
 #pragma omp parallel for simd schedule(static) if (n >= kChunkPoints)
   for (int64_t i = 0; i < n; ++i) {
     const float v = x[i];
-    const float a = std::max(-std::fabs(v), -87.0f);  // e^a stays a normal float
-    float q;
-    const float u = exp_f32_reduced(a, q);
-    const int32_t bits = (static_cast<int32_t>(q) + 127) << 23;  // 2^q
-    float scale;
-    std::memcpy(&scale, &bits, sizeof scale);
-    const float z = u * scale;  // e^-|v|, in (0, 1]
+    const float z = exp_f32(std::max(-std::fabs(v), -87.0f));  // e^-|v|, in (0, 1]: a normal float
     const float t = z / (2.0f + z), t2 = t * t;
     float r = 1.0f / 13.0f;
     r = r * t2 + 1.0f / 11.0f;
@@ -222,13 +216,7 @@ inline void sigmoid_times(const double* x, const double* go, double* g, int64_t 
 inline void sigmoid_times(const float* x, const float* go, float* g, int64_t n) {
 #pragma omp parallel for simd schedule(static) if (n >= kChunkPoints)
   for (int64_t i = 0; i < n; ++i) {
-    const float a = std::min(std::max(-x[i], -87.0f), 87.0f);
-    float q;
-    const float v = exp_f32_reduced(a, q);
-    const int32_t bits = (static_cast<int32_t>(q) + 127) << 23;  // 2^q
-    float scale;
-    std::memcpy(&scale, &bits, sizeof scale);
-    const float s = go[i] / (1.0f + v * scale);
+    const float s = go[i] / (1.0f + exp_f32(std::min(std::max(-x[i], -87.0f), 87.0f)));
     g[i] = x[i] > static_cast<float>(kSoftplusThreshold) ? go[i] : s;
   }
 }
