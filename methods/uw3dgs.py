@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor, nn
@@ -31,6 +31,7 @@ from uw3dgs.methods.gaussian_splatting import (
     GaussianSplattingModelConfig,
     gaussian_optimizers,
 )
+from uw3dgs.metrics.depth_consistency import depth_consistency
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.options import check_number
@@ -71,6 +72,9 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     """Gaussian centres drawn per step to estimate L_beta's mean over all centres."""
     depth_loss_weight: float = 0.05
     """Weight of L_z = mean_i (1 - U_i) |z(p_i) - zhat_i| over visible Gaussians, in units of the median depth."""
+    depth_loss_kernel: Literal["compiled", "torch"] = "compiled"
+    """How L_z runs: 'compiled' = one pass of the compiled CPU backend (PyTorch on CUDA or where it does not build);
+    'torch' = PyTorch everywhere (the reference; the same numbers to float rounding, docs/performance.md)."""
     use_paup: bool = True
     """False removes the PAUP branch (the no-paup ablation): no masked render, no L_PAPSL, no pruning by
     uncertainty, U = 0 and PUS = 1 everywhere."""
@@ -259,21 +263,10 @@ class UW3DGSModel(GaussianSplattingModel):
         return beta_d.reshape(shape), beta_b.reshape(shape)
 
     def depth_consistency(self, outputs: dict[str, Any], camera: Camera) -> Tensor:
-        """L_z: |rendered range at the pixel of each visible Gaussian's centre - its distance to the camera|,
-        in units of the view's median rendered range, weighted by PAUP's (1 - U_i) where it has them (a scalar)."""
-        weights = self.depth_weights()
-        visible = (outputs["radii"] > 0).nonzero().squeeze(1)
-        pix = outputs["means2d"].detach().index_select(0, visible).floor().long()
-        inside = (pix[:, 0] >= 0) & (pix[:, 0] < camera.width) & (pix[:, 1] >= 0) & (pix[:, 1] < camera.height)
-        if not bool(inside.any()):
-            return outputs["range"].sum() * 0.0
-        # one gather per tensor (index_select, whose backward is an index_add): no boolean-mask copies
-        picked, pix = visible[inside], pix[inside]
-        rendered = outputs["range"].reshape(-1).index_select(0, pix[:, 1] * camera.width + pix[:, 0])
-        own = (self.gaussians.means.index_select(0, picked) - camera.center).norm(dim=-1)
-        scale = rendered.detach().median().clamp_min(1e-6)  # unit-free: the weight means the same at any scale
-        error = (rendered - own).abs() / scale
-        return error.mean() if weights is None else (weights.index_select(0, picked) * error).mean()
+        """L_z (uw3dgs/metrics/depth_consistency.py) of this view's render, weighted by PAUP's (1 - U_i) where it
+        has them (a scalar)."""
+        return depth_consistency(outputs["range"], self.gaussians.means, outputs["means2d"], outputs["radii"],
+                                 camera.center, self.depth_weights(), self.config.depth_loss_kernel)
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)

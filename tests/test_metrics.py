@@ -8,6 +8,7 @@ import torch
 from scipy.ndimage import correlate
 
 from uw3dgs.metrics.depth import range_abs_rel
+from uw3dgs.metrics.depth_consistency import depth_consistency
 from uw3dgs.metrics.image import MSE_FLOOR, dssim_loss, l1_loss, psnr, ssim
 from uw3dgs.render import cpu_backend
 
@@ -211,3 +212,72 @@ def test_range_abs_rel_counts_covered_surface_pixels_only():
     # (0, 0): 0.2 / 2, (0, 1): 1 / 4; open water (1, 0) and the half-covered pixel are left out
     assert range_abs_rel(pred, alpha, truth) == pytest.approx((0.1 + 0.25) / 2, abs=1e-7)
     assert range_abs_rel(pred, torch.zeros_like(alpha), truth) is None
+
+
+def _depth_consistency_scene(seed: int, n: int, dtype: torch.dtype = torch.float64):
+    """Gaussians in view and out of it (radius 0, centres off the image), several on one pixel, and one whose
+    rendered range equals its own distance (|.|'s kink); ranges [H, W] = 12 x 10."""
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen, dtype=dtype) * 2 + torch.tensor([0.0, 0.0, 6.0], dtype=dtype)
+    means2d = torch.rand(n, 2, generator=gen, dtype=dtype) * torch.tensor([14.0, 12.0], dtype=dtype) - 1.0
+    means2d[: n // 4] = means2d[n // 4: 2 * (n // 4)]  # shared pixels
+    radii = (torch.rand(n, generator=gen) > 0.2).to(torch.int32) * 3
+    ranges = torch.rand(10, 12, generator=gen, dtype=dtype) * 4 + 4
+    center = torch.tensor([0.1, -0.2, 0.3], dtype=dtype)
+    means2d[0], radii[0] = torch.tensor([5.5, 4.5], dtype=dtype), 3
+    ranges[4, 5] = (means[0] - center).norm()
+    weights = torch.rand(n, generator=gen, dtype=dtype) * 0.3 + 0.7
+    return ranges, means, means2d, radii, center, weights
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_depth_consistency_matches_its_definition(weighted):
+    ranges, means, means2d, radii, center, weights = _depth_consistency_scene(0, 40)
+    weights = weights if weighted else None
+    terms, rendered = [], []
+    for i in range(len(means)):  # the definition, one Gaussian at a time
+        x, y = int(np.floor(float(means2d[i, 0]))), int(np.floor(float(means2d[i, 1])))
+        if radii[i] > 0 and 0 <= x < 12 and 0 <= y < 10:
+            rendered.append(float(ranges[y, x]))
+            terms.append((float(ranges[y, x]), float((means[i] - center).norm()), 1.0 if weights is None
+                          else float(weights[i])))
+    scale = sorted(rendered)[(len(rendered) - 1) // 2]  # the lower median
+    expected = sum(w * abs(r - z) / scale for r, z, w in terms) / len(terms)
+    for kernel in ("torch", "compiled"):
+        if kernel == "compiled" and not cpu_backend.is_available():
+            continue
+        got = depth_consistency(ranges, means, means2d, radii, center, weights, kernel)
+        assert float(got) == pytest.approx(expected, rel=1e-12), kernel
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_compiled_depth_consistency_matches_pytorch(dtype, tolerance, weighted):
+    """Loss and gradients (ranges, means) of the compiled L_z against the PyTorch path in float64, relative to each
+    tensor's largest value, with several Gaussians on a pixel and the kink of |.| at 0."""
+    if not cpu_backend.is_available():
+        pytest.skip("the compiled CPU backend does not build here")
+    scene = _depth_consistency_scene(1, 5000)
+
+    def run(kernel: str, dtype: torch.dtype) -> list[torch.Tensor]:
+        ranges, means, means2d, radii, center, weights = (t.to(dtype) if t.is_floating_point() else t
+                                                          for t in scene)
+        ranges, means = ranges.clone().requires_grad_(), means.clone().requires_grad_()
+        loss = depth_consistency(ranges, means, means2d, radii, center, weights if weighted else None, kernel)
+        (3.0 * loss).backward()
+        return [loss.detach(), ranges.grad, means.grad]
+
+    reference = run("torch", torch.float64)
+    for got, want in zip(run("compiled", dtype), reference, strict=True):
+        assert float((got.double() - want).abs().max()) <= tolerance * float(want.abs().max())
+    assert reference[1].abs().sum() > 0 and reference[2].abs().sum() > 0
+
+
+def test_depth_consistency_without_a_centre_in_the_image_is_zero_with_a_graph():
+    ranges, means, means2d, radii, center, _ = _depth_consistency_scene(2, 10)
+    means2d = means2d + 100.0
+    for kernel in ("torch", "compiled"):
+        r = ranges.clone().requires_grad_()
+        loss = depth_consistency(r, means, means2d, radii, center, None, kernel)
+        loss.backward()
+        assert float(loss.detach()) == 0.0 and float(r.grad.abs().sum()) == 0.0

@@ -2,8 +2,8 @@
 
 The C++ sources (`csrc/cpu_rasterizer.cpp`; `csrc/vm_field.cpp`, the medium's VM field reads of
 `fields/vm_kernel.py`; `csrc/sh_colors.cpp`, the SH colours of `sh_kernel.py`; `csrc/floater_mlp.cpp`, PAUP's phi;
-`csrc/ssim.cpp`, the SSIM of the D-SSIM loss; `csrc/bindings.cpp`) are built as one
-module the first time one of them is used, with
+`csrc/ssim.cpp`, the SSIM of the D-SSIM loss; `csrc/depth_consistency.cpp`, UW-3DGS's L_z; `csrc/bindings.cpp`) are
+built as one module the first time one of them is used, with
 `torch.utils.cpp_extension.load` (JIT, ninja + the system C++ compiler), into a folder per CPU flag set and
 version of the sources under `$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`;
 `$TORCH_EXTENSIONS_DIR` overrides it); later processes reuse the build. The rasterizer mirrors `reference.py`
@@ -46,9 +46,10 @@ from uw3dgs.utils.console import info
 EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
 SOURCES = [Path(__file__).parent / "csrc" / name
            for name in ("bindings.cpp", "cpu_rasterizer.cpp", "vm_field.cpp", "sh_colors.cpp", "floater_mlp.cpp",
-                        "ssim.cpp")]
+                        "ssim.cpp", "depth_consistency.cpp")]
 """The rasterizer, the medium's VM field read (fields/vm_kernel.py), the SH colours (render/sh_kernel.py), PAUP's
-phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py) and their Python bindings: one module."""
+phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py), UW-3DGS's L_z (metrics/depth_consistency.py)
+and their Python bindings: one module."""
 HEADERS = sorted((Path(__file__).parent / "csrc").glob("*.h"))
 """Headers the sources include (exp_f32.h, vector_io.h): part of the build's version, and of the wheel."""
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]

@@ -1,6 +1,6 @@
 // The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
-// (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp), PAUP's phi (floater_mlp.cpp) and the D-SSIM loss's SSIM
-// (ssim.cpp), built together by uw3dgs/render/cpu_backend.py.
+// (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp), PAUP's phi (floater_mlp.cpp), the D-SSIM loss's SSIM
+// (ssim.cpp) and UW-3DGS's L_z (depth_consistency.cpp), built together by uw3dgs/render/cpu_backend.py.
 #include <torch/extension.h>
 
 #include <vector>
@@ -48,6 +48,12 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor pred, torch::Tensor gt, to
                                         double c2, bool need_grad);
 torch::Tensor ssim_backward(torch::Tensor pred, torch::Tensor gt, torch::Tensor grads, torch::Tensor taps,
                             torch::Tensor grad_sum);
+std::vector<torch::Tensor> depth_consistency_forward(torch::Tensor radii, torch::Tensor means2d, torch::Tensor means,
+                                                     torch::Tensor center, torch::Tensor ranges,
+                                                     torch::Tensor weights);
+std::vector<torch::Tensor> depth_consistency_backward(torch::Tensor means, torch::Tensor center, torch::Tensor ranges,
+                                                      torch::Tensor gauss, torch::Tensor pixel, torch::Tensor coef,
+                                                      double grad);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward);
@@ -64,4 +70,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("floater_mlp_backward", &floater_mlp_backward);
   m.def("ssim_forward", &ssim_forward);
   m.def("ssim_backward", &ssim_backward);
+  m.def("depth_consistency_forward", &depth_consistency_forward);
+  m.def("depth_consistency_backward", &depth_consistency_backward);
 }
