@@ -182,6 +182,18 @@ def test_relaxed_keep_mask_gradient_matches_finite_differences():
     assert ((s > 0) & (s < 1)).all()
 
 
+def test_relaxed_keep_mask_draws_bernoulli_of_the_keep_probability():
+    """Hardened at 1/2 the relaxed draws are Bernoulli(p) draws (a wrong sign or scale of the noise breaks it); a
+    lower temperature puts them nearer 0 and 1."""
+    torch.manual_seed(0)
+    p = torch.tensor([0.02, 0.3, 0.5, 0.9, 0.999]).repeat(100_000, 1)
+    for temperature in (0.5, 2.0):
+        kept = (relaxed_keep_mask(p, temperature) > 0.5).float().mean(0)
+        torch.testing.assert_close(kept, p[0], atol=0.005, rtol=0)
+    cold, warm = relaxed_keep_mask(p, 0.1), relaxed_keep_mask(p, 2.0)
+    assert float((cold - 0.5).abs().mean()) > float((warm - 0.5).abs().mean()) + 0.2
+
+
 # -- a planted floater on a plane --
 
 HEIGHT = 3.0
