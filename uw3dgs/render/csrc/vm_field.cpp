@@ -83,10 +83,11 @@ std::vector<Field<T>> channel_last(const std::vector<torch::Tensor>& planes, con
     for (int64_t m = 0; m < 3; ++m) {
       const T* p = planes[f].data_ptr<T>();
       const T* l = lines[f].data_ptr<T>();
-      for (int64_t r = 0; r < R; ++r) {
-        for (int64_t c = 0; c < G * G; ++c) fields[f].plane[(m * G * G + c) * R + r] = p[(m * R + r) * G * G + c];
-        for (int64_t k = 0; k < G; ++k) fields[f].line[(m * G + k) * R + r] = l[(m * R + r) * G + k];
-      }
+      // cell by cell: each cell's R values written as one run (R streams read), not R passes over the copy
+      for (int64_t c = 0; c < G * G; ++c)
+        for (int64_t r = 0; r < R; ++r) fields[f].plane[(m * G * G + c) * R + r] = p[(m * R + r) * G * G + c];
+      for (int64_t k = 0; k < G; ++k)
+        for (int64_t r = 0; r < R; ++r) fields[f].line[(m * G + k) * R + r] = l[(m * R + r) * G + k];
     }
   return fields;
 }
@@ -447,22 +448,24 @@ void backward_impl(const torch::Tensor& u, const torch::Tensor& pre, const std::
   }
   T* a = acc.get();
   const int64_t total = F * block;
-  // each sum adds the chunks in order, whichever thread does it: the result does not depend on the threads
+  // each sum adds the chunks in order, whichever thread does it: the result does not depend on the threads (chunk
+  // by chunk over contiguous runs, which vectorise; element by element across chunks would stride)
 #pragma omp parallel for schedule(static) if (chunks > 1 && total >= kChunkPoints)
-  for (int64_t j = 0; j < total; ++j) {
-    T s = a[j];
-    for (int64_t chunk = 1; chunk < chunks; ++chunk) s += a[chunk * total + j];
-    a[j] = s;
+  for (int64_t j0 = 0; j0 < total; j0 += 4096) {
+    const int64_t j1 = std::min(total, j0 + 4096);
+    for (int64_t chunk = 1; chunk < chunks; ++chunk)
+#pragma omp simd
+      for (int64_t j = j0; j < j1; ++j) a[j] += a[chunk * total + j];
   }
 #pragma omp parallel for collapse(2) schedule(static) if (total >= kChunkPoints)
   for (int64_t f = 0; f < F; ++f)  // back to the factors' own layout
     for (int64_t m = 0; m < 3; ++m) {
       const T* af = a + f * block;
       T *out_p = g_planes[f].data_ptr<T>(), *out_l = g_lines[f].data_ptr<T>();
-      for (int64_t r = 0; r < R; ++r) {
-        for (int64_t c = 0; c < G * G; ++c) out_p[(m * R + r) * G * G + c] = af[(m * G * G + c) * R + r];
-        for (int64_t k = 0; k < G; ++k) out_l[(m * R + r) * G + k] = af[plane_size + (m * G + k) * R + r];
-      }
+      for (int64_t c = 0; c < G * G; ++c)  // cell by cell, as channel_last
+        for (int64_t r = 0; r < R; ++r) out_p[(m * R + r) * G * G + c] = af[(m * G * G + c) * R + r];
+      for (int64_t k = 0; k < G; ++k)
+        for (int64_t r = 0; r < R; ++r) out_l[(m * R + r) * G + k] = af[plane_size + (m * G + k) * R + r];
     }
   for (int64_t f = 0; f < F; ++f) {
     const T* af = a + f * block;
