@@ -221,13 +221,15 @@ class UW3DGSModel(GaussianSplattingModel):
         """(I_UR^Enh [H, W, 3], L1(I_UR, I_UR^Enh) = mean |I_UR - I_UR^Enh|): the Gaussians of the full render `full`
         (`render`'s outputs) again, frozen, with their opacities times `keep` [N]; the L1 carries a gradient to `keep`
         only. The same view and geometry with opacities scaled down, so the full render's projection and tile lists
-        hold. One compiled pass where the backend has it (`rasterize.masked_l1`), else a render and the mean."""
+        hold. One compiled pass where the backend has it (`rasterize.masked_l1`; `--model.paup.kernel`), else a
+        render and the mean."""
         target = full["radiance"].detach()
-        with torch.no_grad():
-            opacities = torch.sigmoid(self.gaussians.opacities)  # as `render` activates them
-        fused = masked_l1(full["raster"], opacities * keep, full["colors"], target, camera, self.config.raster)
-        if fused is not None:
-            return fused
+        if self.paup.fused_masked_l1:
+            with torch.no_grad():
+                opacities = torch.sigmoid(self.gaussians.opacities)  # as `render` activates them
+            fused = masked_l1(full["raster"], opacities * keep, full["colors"], target, camera, self.config.raster)
+            if fused is not None:
+                return fused
         enhanced = self.render(camera, keep=keep, frozen=True, colors=full["colors"],
                                projection=full["raster"])["radiance"]
         return enhanced, (target - enhanced).abs().mean()

@@ -7,8 +7,10 @@ RUN is a `uw3dgs` run past PAUP's start (its checkpoint holds the statistics). E
 the run's latest checkpoint and trains `--steps` more steps, one thread; the mean time per step is what a run
 pays, so the window should span statistics refreshes (`--model.paup.every`) and densification events. "with
 PAUP" is the method as it trains; "without PAUP" removes the branch from the same model (no masked render, no
-second render, no statistics, no L_PAPSL, no pruning by m, plain depth: a `uw3dgs-no-paup` step). The ways
-alternate `--rounds` times; the best mean of each is kept.
+second render, no statistics, no L_PAPSL, no pruning by m, plain depth: a `uw3dgs-no-paup` step); "PAUP in
+PyTorch" is the method with PAUP's compiled passes switched off (`--model.paup.kernel torch`: phi in PyTorch, the
+masked render a frozen render followed by PyTorch's L1). The ways alternate `--rounds` times; the best mean of each
+is kept.
 """
 
 from __future__ import annotations
@@ -29,6 +31,11 @@ def without_paup(trainer: Any) -> None:
             callback.extra_pruning = None
 
 
+def paup_in_pytorch(trainer: Any) -> None:
+    """PAUP's per-step work without its compiled passes (what `--model.paup.kernel torch` builds)."""
+    trainer.model.paup.scorer.compiled = trainer.model.paup.fused_masked_l1 = False
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("config", type=Path, help="config.yml of a trained uw3dgs run (with a checkpoint)")
@@ -36,7 +43,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    ways = {"without PAUP (uw3dgs-no-paup)": without_paup, "with PAUP (uw3dgs)": lambda trainer: None}
+    ways = {"without PAUP (uw3dgs-no-paup)": without_paup, "with PAUP (uw3dgs)": lambda trainer: None,
+            "PAUP in PyTorch": paup_in_pytorch}
     mean = mean_training_steps(args.config, ways, args.steps, args.rounds)
     base = mean["without PAUP (uw3dgs-no-paup)"]
     for name, ms in mean.items():
