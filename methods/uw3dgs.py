@@ -100,6 +100,8 @@ class UW3DGSModel(GaussianSplattingModel):
         self.dataset_scale = float(scene.dataset_scale)
         self.train_cameras = [scene.cameras[i] for i in train_indices]
         self.paup = PAUP(config.paup, self.num_gaussians) if config.use_paup else None
+        self.depth_loss_kernel = config.depth_loss_kernel
+        """How L_z runs (a plain attribute: benchmarks switch it)."""
         self.medium: MediumField | None = None
         self.medium_report: IdentifiabilityReport | None = None
         """The report on the starting estimate (`initialize_from_data`; None: not made, or a loaded run)."""
@@ -268,7 +270,7 @@ class UW3DGSModel(GaussianSplattingModel):
         """L_z (uw3dgs/metrics/depth_consistency.py) of this view's render, weighted by PAUP's (1 - U_i) where it
         has them (a scalar)."""
         return depth_consistency(outputs["range"], self.gaussians.means, outputs["means2d"], outputs["radii"],
-                                 camera.center, self.depth_weights(), self.config.depth_loss_kernel)
+                                 camera.center, self.depth_weights(), self.depth_loss_kernel)
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)

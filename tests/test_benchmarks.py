@@ -207,7 +207,7 @@ def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3
     monkeypatch.setattr(sys, "argv", ["training_step", str(uw3dgs_run.run_dir / "config.yml"), "--repeats", "1"])
     load_script("training_step").main()
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
-    assert len(rows) == 8 and rows[0].split()[0] == "now"
+    assert len(rows) == 9 and rows[0].split()[0] == "now"
     assert gaussians_module.eval_sh_split is sh and VMField.forward is medium
 
 
@@ -224,6 +224,9 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
     # the way without the branch trains as uw3dgs-no-paup does: no masked render, no L_PAPSL, no PAUP pruning
     batch = trainer.datamanager.next_train()
     with_branch = trainer.model.get_outputs(batch["camera"])
+    script.paup_in_pytorch(trainer)  # the masked render a frozen render, its L1 PyTorch's
+    in_pytorch = trainer.model.get_outputs(batch["camera"])
+    assert type(in_pytorch["uri_enhanced_l1"].grad_fn).__name__ != type(with_branch["uri_enhanced_l1"].grad_fn).__name__
     script.without_paup(trainer)
     without = trainer.model.get_outputs(batch["camera"])
     assert "uri_enhanced" in with_branch and "uri_enhanced" not in without and "pus" not in without
@@ -233,7 +236,8 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
                                       "--rounds", "1"])
     script.main()
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
-    assert [r.split("(")[0].strip() for r in rows] == ["without PAUP", "with PAUP"]
+    names = [r.strip().split("(")[0].split("  ")[0].strip() for r in rows]
+    assert names == ["without PAUP", "with PAUP", "PAUP in PyTorch"]
     assert rows[0].rstrip().endswith("1.00x")
 
 

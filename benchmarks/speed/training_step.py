@@ -11,7 +11,8 @@ drift of the machine and of the model. The changes and their microbenchmarks: th
 kernel, and in PyTorch with their own backward (`sh_eval.py`), the medium's VM fields read by the compiled
 kernel, and in PyTorch channel-major
 (`medium_field.py`; a run without a medium, `3dgs`, reads no fields, so there those rows show the timing
-noise), Adam fused (`adam_fused.py`). Where the time of a step goes: `step_profile.py`.
+noise), Adam fused (`adam_fused.py`), L_z and PAUP's phi and masked render + L1 compiled (`paup_cost.py`: PAUP's
+share). Where the time of a step goes: `step_profile.py`.
 """
 
 from __future__ import annotations
@@ -32,15 +33,21 @@ from uw3dgs.render.sh import eval_sh_split
 
 
 def installer(sh_compiled: bool = True, sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR,
-              compiled: bool = True, fused: bool = True) -> Callable[[Any], None]:
-    """Switch the running trainer to these implementations (a built Adam reads its flag at every step)."""
+              compiled: bool = True, fused: bool = True, losses_compiled: bool = True) -> Callable[[Any], None]:
+    """Switch the running trainer to these implementations (a built Adam reads its flag at every step);
+    `losses_compiled` False: L_z and PAUP's phi and masked render + L1 in PyTorch."""
 
     def install(trainer) -> None:
-        trainer.model.gaussians.compiled = sh_compiled
+        model = trainer.model
+        model.gaussians.compiled = sh_compiled
         gaussians_module.eval_sh_split = sh  # GaussianField.colors calls the module-level name
         VMField.forward = medium
-        if getattr(trainer.model, "medium", None) is not None and hasattr(trainer.model.medium, "compiled"):
-            trainer.model.medium.compiled = compiled
+        if getattr(model, "medium", None) is not None and hasattr(model.medium, "compiled"):
+            model.medium.compiled = compiled
+        if hasattr(model, "depth_loss_kernel"):
+            model.depth_loss_kernel = "compiled" if losses_compiled else "torch"
+        if getattr(model, "paup", None) is not None:
+            model.paup.scorer.compiled = model.paup.fused_masked_l1 = losses_compiled
         for optimizer in trainer.optimizers.optimizers.values():
             for group in optimizer.param_groups:
                 group["fused"] = fused
@@ -61,14 +68,16 @@ def main() -> None:
         "medium: PyTorch, not compiled": installer(compiled=False),
         "medium: PyTorch row-major": installer(medium=forward_row_major, compiled=False),
         "Adam per-operation loop": installer(fused=False),
-        "all undone": installer(False, eval_sh_autograd_product, forward_row_major, compiled=False, fused=False),
+        "L_z, PAUP's phi and masked L1: PyTorch": installer(losses_compiled=False),
+        "all undone": installer(False, eval_sh_autograd_product, forward_row_major, compiled=False, fused=False,
+                                losses_compiled=False),
         "and SH one term per function": installer(False, eval_sh_per_term, forward_row_major, compiled=False,
-                                                  fused=False),
+                                                  fused=False, losses_compiled=False),
     }
     best = time_training_steps(args.config, ways, args.repeats)
     gaussians_module.eval_sh_split, VMField.forward = eval_sh_split, CHANNEL_MAJOR
     for name, ms in best.items():
-        print(f"  {name:34s} {ms:8.1f} ms per step   {ms / best['now']:.2f}x the time of now")
+        print(f"  {name:40s} {ms:8.1f} ms per step   {ms / best['now']:.2f}x the time of now")
 
 
 if __name__ == "__main__":
