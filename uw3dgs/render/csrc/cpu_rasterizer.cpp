@@ -1130,6 +1130,15 @@ void reduce_slots(const torch::Tensor& gauss_starts, const torch::Tensor& slots,
   const int64_t* gs = gauss_starts.data_ptr<int64_t>();
   const T* s = slots.data_ptr<T>();
   T* o = out.data_ptr<T>();
+  if (R == 1) {  // weight sums, pixel counts, the frozen backward: the sum in a register (the same order)
+#pragma omp parallel for schedule(static) if (n >= kParallelMin)
+    for (int64_t i = 0; i < n; ++i) {
+      T sum = 0;
+      for (int64_t p = gs[i]; p < gs[i + 1]; ++p) sum += s[p];
+      o[i] = sum;
+    }
+    return;
+  }
 #pragma omp parallel for schedule(static) if (n >= kParallelMin)
   for (int64_t i = 0; i < n; ++i) {
     for (int64_t r = 0; r < R; ++r) o[i * R + r] = 0;
