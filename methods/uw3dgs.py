@@ -185,7 +185,7 @@ class UW3DGSModel(GaussianSplattingModel):
         'beta_b' [H, W, 3] (the betas ray-averaged per pixel, per dataset unit)."""
         weights = self.depth_weights()
         if self.training and self.paup is not None and self.paup.active:
-            outputs = self.render_enhanced(camera, weights)
+            outputs = self.render_with_paup(camera, weights)
         else:
             outputs = self.render(camera, depth_weights=weights)
         uri = outputs["uri"] = outputs.pop("radiance")
@@ -200,24 +200,34 @@ class UW3DGSModel(GaussianSplattingModel):
                        beta_d=beta_d, beta_b=beta_b)
         return outputs
 
-    def render_enhanced(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
-        """Training render with PAUP: `render`'s outputs (the UWI is formed from this full I_UR, as evaluation
-        renders it), plus 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered frozen with their opacities
-        times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i; `--model.paup.mask`), so
-        L_PAPSL trains the scorer alone, and 'uri_enhanced_l1', L1(I_UR, I_UR^Enh) (`render_masked`); and 'pus',
-        'floater_probability' [N]. Refreshes the statistics first when they are due."""
+    def render_with_paup(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
+        """Training render from PAUP's start: `render`'s outputs (the UWI is formed from this full I_UR, as
+        evaluation renders it) and 'pus' [N] for L_beta's weights; on the steps of `--model.paup.enhanced-every`
+        also I_UR^Enh, its L1 to I_UR and m (`add_enhanced_render`), which L_PAPSL reads. Refreshes the statistics
+        first when they are due."""
         if self.paup.refresh_due:
             with section("PAUP: statistics"):
                 self.refresh_paup_statistics(camera)
             depth_weights = self.depth_weights()
         outputs = self.render(camera, depth_weights=depth_weights)
+        if self.paup.enhanced_due:
+            self.add_enhanced_render(outputs, camera)
+        else:  # L_beta still weighs by PUS: the weighted sum alone (no phi, no mask; nothing trains the scorer)
+            with section("PAUP: scores"), torch.no_grad():
+                outputs["pus"] = self.paup.pus()
+        return outputs
+
+    def add_enhanced_render(self, outputs: dict[str, Any], camera: Camera) -> None:
+        """Add to `render`'s `outputs` of `camera` 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered frozen
+        with their opacities times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i;
+        `--model.paup.mask`), so L_PAPSL trains the scorer alone, and 'uri_enhanced_l1', L1(I_UR, I_UR^Enh)
+        (`render_masked`); and 'pus', 'floater_probability' [N]."""
         with section("PAUP: scores + masked render"):
             pus, m = self.paup.scores()
             c = self.config.paup
             keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
             outputs["uri_enhanced"], outputs["uri_enhanced_l1"] = self.render_masked(camera, keep, outputs)
         outputs.update(pus=pus, floater_probability=m)
-        return outputs
 
     def render_masked(self, camera: Camera, keep: Tensor, full: dict[str, Any]) -> tuple[Tensor, Tensor]:
         """(I_UR^Enh [H, W, 3], L1(I_UR, I_UR^Enh) = mean |I_UR - I_UR^Enh|): the Gaussians of the full render `full`
@@ -294,8 +304,8 @@ class UW3DGSModel(GaussianSplattingModel):
     @staticmethod
     def beta_loss_weights(outputs: dict[str, Any], picked: Tensor | None) -> Tensor | None:
         """PUS_i of the Gaussians whose centres L_beta reads (`picked` indices, None = all), from the step's PAUP
-        render and detached (a weight, not a target: L_beta must not train the scorer); None (PUS = 1) when the
-        step had no PAUP branch."""
+        render (with or without I_UR^Enh) and detached (a weight, not a target: L_beta must not train the scorer);
+        None (PUS = 1) when the step had no PAUP branch."""
         if "pus" not in outputs:
             return None
         pus = outputs["pus"].detach()

@@ -209,7 +209,7 @@ def look_down(x: float, y: float, width: int = 40, height: int = 30, focal: floa
     return Camera(viewmat, K, width, height)
 
 
-def planted_floater_model(mask: str = "expected", prune_after_densification: bool = False):
+def planted_floater_model(mask: str = "expected", **paup):
     """An opaque plane of small Gaussians that all three downward cameras see whole, and one opaque Gaussian 0.5
     below camera 0 and to its side, inside view 0 only, in open water there (the last Gaussian). It hides no part
     of the plane: a Gaussian of the plane hidden in one view is as view-inconsistent as the floater by U and P
@@ -222,8 +222,7 @@ def planted_floater_model(mask: str = "expected", prune_after_densification: boo
     cameras = [look_down(0.0, 0.0), look_down(0.6, 0.0), look_down(0.0, 0.6)]
     scene = SceneData(name="plane", image_names=["0", "1", "2"], images=torch.zeros(3, 30, 40, 3), cameras=cameras,
                       points=means, point_colors=torch.full_like(means, 0.5), near=0.1, far=10.0)
-    config = UW3DGSModelConfig(paup=PAUPConfig(num_views=3, start=0, mask=mask,
-                                               prune_after_densification=prune_after_densification))
+    config = UW3DGSModelConfig(paup=PAUPConfig(**{"num_views": 3, "start": 0, "mask": mask, **paup}))
     model = config.setup(scene=scene, train_indices=[0, 1, 2])
     with torch.no_grad():
         model.gaussians.scales.copy_(torch.log(torch.cat([torch.full((len(plane), 3), 0.03),
@@ -340,6 +339,42 @@ def test_gradients_reach_the_scorer_through_the_mask_and_eval_renders_without_it
     assert torch.equal(first["uri"], second["uri"]) and torch.equal(first["uri"], plain["radiance"])
 
 
+@pytest.mark.parametrize("every", [1, 2])
+def test_the_masked_render_every_n_steps_from_start_and_pus_weights_l_beta_on_all(monkeypatch, every):
+    """--model.paup.enhanced-every N: I_UR^Enh, m and L_PAPSL on every N-th step from PAUP's start (every step for
+    N = 1, the paper); the steps between still give L_beta its PUS weights, train nothing of the scorer, and keep
+    the statistics' own cadence."""
+    start = 2
+    model, cameras = planted_floater_model("concrete", start=start, every=3, enhanced_every=every)
+    model.train()
+    refreshed, beta_weights = [], []
+    refresh = model.refresh_paup_statistics
+    monkeypatch.setattr(model, "refresh_paup_statistics", lambda camera: (refreshed.append(model.paup.step),
+                                                                          refresh(camera)))
+    regularizer = model.medium.regularizer
+    monkeypatch.setattr(model.medium, "regularizer", lambda points, weights=None: (beta_weights.append(weights),
+                                                                                   regularizer(points, weights))[1])
+    batch = {"camera": cameras[1], "image": torch.zeros(30, 40, 3)}
+    full_keys = None
+    for step in range(start - 1, start + 6):
+        model.paup.set_step(step)
+        outputs = model.get_outputs(cameras[1])
+        losses = model.get_loss_dict(outputs, batch, step)
+        if step < start:  # no branch yet: L_beta unweighted (PUS = 1)
+            assert "pus" not in outputs and beta_weights[-1] is None
+            continue
+        torch.testing.assert_close(beta_weights[-1], model.paup.pus().detach(), rtol=0, atol=0)
+        enhanced = (step - start) % every == 0
+        assert ("uri_enhanced" in outputs, "floater_probability" in outputs, "paup_loss" in losses) == (enhanced,) * 3
+        full_keys = set(outputs) if enhanced else full_keys
+        if not enhanced:
+            assert set(outputs) == full_keys - {"uri_enhanced", "floater_probability"}
+            model.zero_grad(set_to_none=True)
+            sum(losses.values()).backward()
+            assert all(p.grad is None for p in model.paup.scorer.parameters())
+    assert refreshed == [start, start + 3]
+
+
 def test_uncertainty_weighted_depth_against_a_per_gaussian_sum():
     """With the weights (1 - U_i) the depth is sum w_i d_i z_i / sum w_i d_i: checked by splitting the render into
     one image per Gaussian (the blending weights do not depend on the depth weights)."""
@@ -404,6 +439,7 @@ def test_paup_trains_prunes_on_schedule_and_resumes(make_config, monkeypatch):
     ("--model.paup.prune-quantile", "1.5", "must be a finite number > 0 and < 1, got 1.5"),
     ("--model.paup.num-views", "1", "must be a whole number >= 2, got 1"),
     ("--model.paup.mask-temperature", "0", "must be a finite number > 0, got 0.0"),
+    ("--model.paup.enhanced-every", "0", "must be a whole number >= 1, got 0"),
 ])
 def test_a_bad_paup_option_is_one_line_naming_it(tmp_path, capsys, flag, value, message):
     from uw3dgs.cli.train import entrypoint as uw_train

@@ -22,6 +22,10 @@ class PAUPConfig(CheckedConfig):
     """First step with the PAUP branch (statistics, the masked render, L_PAPSL, pruning)."""
     every: int = 100
     """Steps between refreshes of the statistics U, P (from the views nearest the step's training view)."""
+    enhanced_every: int = 1
+    """Steps between renders of I_UR^Enh and its L_PAPSL term (1: every step, as the paper; N: every N-th step
+    from `start`, a CPU speed knob, docs/performance.md). The steps between still weigh L_beta by PUS; the
+    statistics' refresh and the pruning keep their own cadence."""
     num_views: int = 5
     """K: training views (nearest camera centres, the current one included) the statistics are taken over."""
     opacity_variance_weight: float = 0.4
@@ -79,6 +83,7 @@ class PAUPConfig(CheckedConfig):
     def check_options(self) -> None:
         check_number(self, "start", ge=0, integer=True)
         check_number(self, "every", ge=1, integer=True)
+        check_number(self, "enhanced_every", ge=1, integer=True)
         check_number(self, "num_views", ge=2, integer=True)
         check_number(self, "opacity_variance_weight", ge=0)
         check_number(self, "color_variance_weight", ge=0)
@@ -140,7 +145,16 @@ class PAUP(nn.Module):
 
     @property
     def refresh_due(self) -> bool:
-        return self.active and (self.step - self.config.start) % self.config.every == 0
+        """This step refreshes the statistics (every `every` steps from `start`)."""
+        return self._due_every(self.config.every)
+
+    @property
+    def enhanced_due(self) -> bool:
+        """This step renders I_UR^Enh and adds L_PAPSL (every `enhanced_every` steps from `start`)."""
+        return self._due_every(self.config.enhanced_every)
+
+    def _due_every(self, steps: int) -> bool:
+        return self.active and (self.step - self.config.start) % steps == 0
 
     @property
     def has_statistics(self) -> bool:
@@ -173,10 +187,13 @@ class PAUP(nn.Module):
             self._filled = (*values, any_known)
         return self._filled
 
+    def pus(self) -> Tensor:
+        """PUS [N] = w_u U + w_p P, differentiable in w_u and w_p (phi is not run)."""
+        return self.scorer.score(*self.filled())
+
     def scores(self) -> tuple[Tensor, Tensor]:
         """(PUS [N], m [N]), differentiable in the scorer's parameters."""
-        u, p = self.filled()
-        pus = self.scorer.score(u, p)
+        pus = self.pus()
         return pus, self.scorer(pus)
 
     def depth_weights(self) -> Tensor:
