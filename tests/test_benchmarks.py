@@ -233,11 +233,12 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
     assert "paup_loss" not in trainer.model.get_loss_dict(without, batch, 21)
     assert all(getattr(cb, "extra_pruning", None) is None for cb in trainer.callbacks)
     monkeypatch.setattr(sys, "argv", ["paup_cost", str(trainer.run_dir / "config.yml"), "--steps", "3",
-                                      "--rounds", "1"])
+                                      "--rounds", "1", "--enhanced-every", "2"])
     script.main()
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
-    names = [r.strip().split("(")[0].split("  ")[0].strip() for r in rows]
-    assert names == ["without PAUP", "with PAUP", "PAUP in PyTorch"]
+    ways = ["without PAUP (uw3dgs-no-paup)", "with PAUP (uw3dgs)", "PAUP in PyTorch",
+            "with PAUP, I_UR^Enh every 2 steps"]
+    assert [row.strip()[:len(way) + 1] for row, way in zip(rows, ways, strict=True)] == [f"{w} " for w in ways]
     assert rows[0].rstrip().endswith("1.00x")
 
 
