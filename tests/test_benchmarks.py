@@ -291,7 +291,7 @@ def test_step_profile_attributes_forward_and_backward_to_their_sections():
 
 def test_step_profile_prints_one_table_per_size_for_every_method(uw3dgs_run, monkeypatch, capsys, keep_threads):
     monkeypatch.setattr(sys, "argv", ["step_profile", str(uw3dgs_run.run_dir / "config.yml"), "--downscales", "1",
-                                      "--sizes", "1.0", "0.5", "--steps", "2"])
+                                      "--sizes", "1.0", "0.5", "--steps", "2", "--enhanced-every", "2"])
     load_script("step_profile").main()
     tables = [t.strip() for t in capsys.readouterr().out.split("\n\n") if t.strip().startswith("downscale")]
     assert len(tables) == 2
@@ -299,9 +299,11 @@ def test_step_profile_prints_one_table_per_size_for_every_method(uw3dgs_run, mon
     assert counts == [uw3dgs_run.model.num_gaussians, round(0.5 * uw3dgs_run.model.num_gaussians)]
     for table in tables:
         rows = {cells(r)[0]: cells(r)[1:] for r in table.splitlines()[3:]}
-        assert table.splitlines()[1].count("`") == 6  # 3dgs, uw3dgs-no-paup, uw3dgs
+        assert table.splitlines()[1].count("`") == 8  # 3dgs, uw3dgs-no-paup, uw3dgs, uw3dgs every 2
         assert rows["medium"][0] == "-" and rows["medium"][1] != "-" and rows["medium"][2] != "-"
         assert rows["PAUP: scores + masked render"][:2] == ["-", "-"]
+        # every other step without I_UR^Enh (steps 3,101-3,102 of a run whose PAUP starts at 500): PUS alone there
+        assert rows["PAUP: scores"][2] == "-" and rows["PAUP: scores"][3] != "-"
         assert all(v != "-" for v in rows["rasterize"] + rows["sh colours"] + rows["Adam"])
         wall = [float(v.strip("*").split("*")[0]) for v in rows["**step, no profiler**"]]
         assert all(w > 0 for w in wall)

@@ -2,7 +2,7 @@
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 \\
       python benchmarks/speed/step_profile.py RUN/config.yml [--downscales 8 4] [--sizes 1.0 0.3] \\
-        [--threads 1 2] [--steps 100]
+        [--threads 1 2] [--steps 100] [--methods ...] [--enhanced-every N ...]
 
 (`OMP_WAIT_POLICY` left unset on a machine the benchmark has to itself: with `passive`, two-thread steps are
 10-25% slower, docs/performance.md.)
@@ -46,16 +46,19 @@ START_STEP = 3100
 BACKWARD_PREFIX = "autograd::engine::evaluate_function: "
 
 
-def method_config(name: str, saved: Any, downscale: int, scratch: Path) -> Any:
+def method_config(name: str, saved: Any, downscale: int, scratch: Path, enhanced_every: int = 1) -> Any:
     """Method `name`'s default config on RUN's data at `downscale`; a medium starts at its prior (the estimate's
-    fit costs setup time and changes nothing in a step)."""
+    fit costs setup time and changes nothing in a step). `enhanced_every`: `--model.paup.enhanced-every` of a
+    method with PAUP."""
     config = METHODS[name].config
     model = config.model
     if getattr(model, "medium", None) is not None:
         model = dataclasses.replace(model, medium=dataclasses.replace(model.medium, init="prior"))
+    if getattr(model, "paup", None) is not None:
+        model = dataclasses.replace(model, paup=dataclasses.replace(model.paup, enhanced_every=enhanced_every))
     return dataclasses.replace(config, model=model, data=saved.data, datamanager=saved.datamanager,
                                downscale_factor=downscale, output_dir=scratch, experiment_name="profile",
-                               timestamp=f"{name}-x{downscale}", progress=False, seed=0)
+                               timestamp=f"{name}-x{downscale}-n{enhanced_every}", progress=False, seed=0)
 
 
 def transplant(trainer: Trainer, values: dict[str, torch.Tensor]) -> None:
@@ -151,6 +154,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, nargs="+", default=[1])
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--methods", nargs="+", default=list(METHOD_NAMES))
+    parser.add_argument("--enhanced-every", type=int, nargs="+", default=[], metavar="N",
+                        help="also `uw3dgs` with PAUP's masked render every N steps (--model.paup.enhanced-every)")
     args = parser.parse_args()
     saved = load_config(args.config)
     checkpoint = latest_checkpoint(args.config.parent)
@@ -162,10 +167,12 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         for downscale in args.downscales:
             trainers = {}
-            for name in args.methods:
-                trainers[name] = Trainer(method_config(name, saved, downscale, Path(scratch)))
-                trainers[name].setup()
-            camera = trainers[args.methods[0]].datamanager.scene.cameras[0]
+            columns = [(name, name, 1) for name in args.methods]
+            columns += [(f"uw3dgs, I_UR^Enh every {n}", "uw3dgs", n) for n in args.enhanced_every]
+            for column, name, every in columns:
+                trainers[column] = Trainer(method_config(name, saved, downscale, Path(scratch), every))
+                trainers[column].setup()
+            camera = next(iter(trainers.values())).datamanager.scene.cameras[0]
             for size in args.sizes:
                 picked = torch.randperm(total, generator=torch.Generator().manual_seed(0))[:round(size * total)]
                 values = {name: value[picked.sort().values] for name, value in model.items()}
