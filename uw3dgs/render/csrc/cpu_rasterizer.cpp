@@ -701,11 +701,21 @@ inline bool tile_box(const GaussRec<T>& g, int64_t x0, int64_t y0, int64_t w, in
   return r_lo <= r_hi && xa <= xb;
 }
 
+// Tile t's origin and size in pixels (tiles of the last row and column may be cut by the image's border).
+struct TileRect {
+  int64_t x0 = 0, y0 = 0, w = 0, h = 0;
+};
+
+inline TileRect tile_rect(const Bins& bins, int64_t t, int64_t width, int64_t height) {
+  const int64_t x0 = (t % bins.tiles_x) * bins.tile, y0 = (t / bins.tiles_x) * bins.tile;
+  return {x0, y0, std::min(x0 + bins.tile, width) - x0, std::min(y0 + bins.tile, height) - y0};
+}
+
 // The compositing forward of one tile at a time, with one thread's scratch: what composite_forward and PAUP's
 // masked L1 (masked_l1) share. After run(t): Tr holds the tile's final transmittance and acc its F channels then
 // the alpha sum (channel-major planes of `plane` values, rows padded to whole chunks, `stride` apart).
 template <typename T, int NF>
-struct TileForward {
+struct TileForward : TileRect {  // the last tile's rectangle
   using V = typename Simd<T>::V;
   using I = typename Simd<T>::I;
   using Int = typename Simd<T>::Int;
@@ -730,7 +740,6 @@ struct TileForward {
   std::vector<int32_t> cnt, n_codes;
   std::vector<V> alphas;  // with keep_alphas: each code's blended alphas (0 in other lanes), indexed like buf
   bool keep_alphas = false;
-  int64_t x0 = 0, y0 = 0, w = 0, h = 0;  // the last tile's origin and size
 
   TileForward(const Bins& bins_, const GaussRec<T>* recs_, const torch::Tensor& feats, int64_t width_,
               int64_t height_, double alpha_min_d, double alpha_max_d, double t_min_d)
@@ -752,10 +761,7 @@ struct TileForward {
     const int32_t* ids = bins.sorted_gauss.data_ptr<int32_t>() + tstart[t];
     const int64_t* ss = bins.sorted_slot.data_ptr<int64_t>() + tstart[t];
     const int64_t k = tstart[t + 1] - tstart[t];
-    x0 = (t % bins.tiles_x) * ts;
-    y0 = (t / bins.tiles_x) * ts;
-    w = std::min(x0 + ts, width) - x0;
-    h = std::min(y0 + ts, height) - y0;
+    static_cast<TileRect&>(*this) = tile_rect(bins, t, width, height);
     std::fill(Tr.begin(), Tr.end(), static_cast<T>(1));
     std::fill(acc.begin(), acc.end(), static_cast<T>(0));
     std::fill(live.begin(), live.end(), 0);
@@ -916,7 +922,7 @@ void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const tor
 // into slot rows of 6 + F values; false: of the opacities only, one value per slot (a render whose Gaussians are
 // frozen), which skips the moment and per-channel sums.
 template <typename T, int NF, bool kAll>
-struct TileBackward {
+struct TileBackward : TileRect {  // the tile's rectangle
   using V = typename Simd<T>::V;
   using I = typename Simd<T>::I;
   const Bins& bins;
@@ -928,7 +934,6 @@ struct TileBackward {
   I lane_bit;
   // Per pixel: transmittance in front of the current Gaussian, S = sum of w g behind it, the output gradients.
   std::vector<T> Tr, S, go;
-  int64_t x0 = 0, y0 = 0, w = 0, h = 0;  // the tile's origin and size
 
   TileBackward(const Bins& bins_, const GaussRec<T>* recs_, const torch::Tensor& feats, double alpha_max_d)
       : bins(bins_), recs(recs_), ft(feats.data_ptr<T>()), F(NF > 0 ? NF : feats.size(1)), ts(bins_.tile),
@@ -942,10 +947,7 @@ struct TileBackward {
   }
 
   void begin(int64_t t, int64_t width, int64_t height) {
-    x0 = (t % bins.tiles_x) * ts;
-    y0 = (t / bins.tiles_x) * ts;
-    w = std::min(x0 + ts, width) - x0;
-    h = std::min(y0 + ts, height) - y0;
+    static_cast<TileRect&>(*this) = tile_rect(bins, t, width, height);
     std::fill(Tr.begin(), Tr.end(), static_cast<T>(0));
     std::fill(S.begin(), S.end(), static_cast<T>(0));
     std::fill(go.begin(), go.end(), static_cast<T>(0));
