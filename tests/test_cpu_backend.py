@@ -247,6 +247,27 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch: pytest.MonkeyPatch)
     assert torch.equal(out.render, ref.render)
 
 
+def test_each_checkout_builds_into_its_own_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two checkouts of the same sources get two build folders (torch's build file names the sources' paths: a
+    shared folder was rebuilt whenever the other checkout had run last); one checkout always the same folder, and
+    a change of the sources a new one."""
+    folders = []
+    for checkout in ("a", "b"):
+        copies = []
+        for source in [*cpu_backend.SOURCES, *cpu_backend.HEADERS]:
+            copy = tmp_path / checkout / source.name
+            copy.parent.mkdir(parents=True, exist_ok=True)
+            copy.write_bytes(source.read_bytes())
+            copies.append(copy)
+        monkeypatch.setattr(cpu_backend, "SOURCES", copies[:len(cpu_backend.SOURCES)])
+        monkeypatch.setattr(cpu_backend, "HEADERS", copies[len(cpu_backend.SOURCES):])
+        folders.append(cpu_backend.build_directory())
+        assert cpu_backend.build_directory() == folders[-1]
+    assert folders[0] != folders[1] and folders[0].parent == folders[1].parent
+    copies[0].write_bytes(copies[0].read_bytes() + b"\n")
+    assert cpu_backend.build_directory() != folders[1]
+
+
 def test_a_build_lock_left_by_a_killed_build_is_removed_and_a_live_one_waited_for(tmp_path: Path) -> None:
     """torch waits for ever on the `lock` of a build that was killed; the backend's own lock names its process, so
     a lock whose process is gone is removed (torch's with it), with a warning, and a live one is waited for."""

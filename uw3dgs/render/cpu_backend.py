@@ -5,7 +5,7 @@ The C++ sources (`csrc/cpu_rasterizer.cpp`; `csrc/vm_field.cpp`, the medium's VM
 `csrc/ssim.cpp`, the SSIM of the D-SSIM loss; `csrc/depth_consistency.cpp`, UW-3DGS's L_z; `csrc/bindings.cpp`) are
 built as one module the first time one of them is used, with
 `torch.utils.cpp_extension.load` (JIT, ninja + the system C++ compiler), into a folder per CPU flag set and
-version of the sources under `$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`;
+version of the sources and checkout under `$UW3DGS_CACHE/torch_extensions` (default `~/.cache/uw3dgs/torch_extensions`;
 `$TORCH_EXTENSIONS_DIR` overrides it); later processes reuse the build. The rasterizer mirrors `reference.py`
 numerically: same projection, opacity-aware radii, (tile, depth) ordering, alpha_min / alpha_max / early-termination
 rules and exp() floor, in float32 or float64. If the build fails (no compiler, ...) the backend warns once and
@@ -86,7 +86,7 @@ _state: dict[str, object] = {}
 
 def build_directory() -> Path:
     """Where the JIT build goes: $TORCH_EXTENSIONS_DIR, else $UW3DGS_CACHE (or ~/.cache/uw3dgs)/torch_extensions;
-    one folder per CPU flag set and version of the sources."""
+    one folder per CPU flag set, version of the sources and checkout."""
     if os.environ.get("TORCH_EXTENSIONS_DIR"):
         root = Path(os.environ["TORCH_EXTENSIONS_DIR"])
     else:
@@ -94,8 +94,10 @@ def build_directory() -> Path:
     flags = _simd_flags()
     simd = "_avx512" if "-mavx512f" in flags else "_avx2" if flags else ""
     # the sources' hash (headers too): two checkouts of different versions on one machine never rebuild over each
-    # other's module
-    digest = hashlib.sha256(b"".join(path.read_bytes() for path in [*SOURCES, *HEADERS])).hexdigest()[:10]
+    # other's module. Their paths too: torch's build file names them, so two checkouts of the same version in one
+    # folder rebuilt everything (a minute, inside the first training step) whenever the other one had run last.
+    digest = hashlib.sha256(b"".join(str(path.resolve()).encode() + path.read_bytes()
+                                     for path in [*SOURCES, *HEADERS])).hexdigest()[:10]
     return root / f"{EXTENSION_NAME}{simd}_torch{torch.__version__.split('+')[0]}_{digest}"
 
 
