@@ -200,6 +200,21 @@ def runs_on(tensor: Tensor) -> bool:
     return tensor.device.type == "cpu" and tensor.dtype in (torch.float32, torch.float64) and is_available()
 
 
+def _rasterizes(tensor: Tensor, settings: RasterSettings) -> bool:
+    """Whether the compiled rasterizer takes Gaussians of this tensor's device and dtype with these settings."""
+    return settings.tile_size <= MAX_TILE and runs_on(tensor)
+
+
+def _reused(projection: RasterOutput, dtype: torch.dtype, settings: RasterSettings) -> tuple[Tensor, ...]:
+    """An earlier render's screen-space Gaussians (means2d, conics, depths in `dtype`, radii) and its tile lists when
+    made with these settings (None: bin again; the same outputs either way, composite_forward)."""
+    means2d, conics, depths = (t.detach().to(dtype).contiguous()
+                               for t in (projection.means2d, projection.conics, projection.depths))
+    lists = projection.tile_lists
+    lists = lists.tensors if lists is not None and lists.tile_size == settings.tile_size else None
+    return means2d, conics, depths, projection.radii.contiguous(), lists
+
+
 class _Project(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, settings):
@@ -288,17 +303,12 @@ def masked_l1_cpu(projection: RasterOutput, opacities: Tensor, features: Tensor,
                   height: int, settings: RasterSettings) -> tuple[Tensor, Tensor] | None:
     """`rasterize.masked_l1` on the compiled backend; None where it does not run (not a CPU float tensor, a tile
     larger than MAX_TILE, no build)."""
-    unsupported = opacities.device.type != "cpu" or opacities.dtype not in (torch.float32, torch.float64)
-    if unsupported or settings.tile_size > MAX_TILE or load_extension() is None:
+    if not _rasterizes(opacities, settings):
         return None
     dtype = opacities.dtype
-    means2d, conics, depths = (t.detach().to(dtype).contiguous()
-                               for t in (projection.means2d, projection.conics, projection.depths))
-    lists = projection.tile_lists
-    lists = lists.tensors if lists is not None and lists.tile_size == settings.tile_size else None
+    means2d, conics, depths, radii, lists = _reused(projection, dtype, settings)
     return _MaskedL1.apply(opacities.contiguous(), means2d, conics, features.detach().to(dtype).contiguous(), depths,
-                           projection.radii.contiguous(), target.detach().to(dtype).contiguous(), width, height,
-                           settings, lists)
+                           radii, target.detach().to(dtype).contiguous(), width, height, settings, lists)
 
 
 def rasterize_cpu(
@@ -315,20 +325,14 @@ def rasterize_cpu(
     projection: RasterOutput | None = None,
 ) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, compiled ('cpu' backend)."""
-    unsupported = means.device.type != "cpu" or means.dtype not in (torch.float32, torch.float64)
-    if unsupported or settings.tile_size > MAX_TILE or load_extension() is None:
+    if not _rasterizes(means, settings):
         return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings,
                                    projection)
     dtype = means.dtype
     opacities, features = (t.to(dtype).contiguous() for t in (opacities, features))
     tile_lists = None
     if projection is not None:
-        means2d, conics, depths = (t.detach().to(dtype).contiguous()
-                                   for t in (projection.means2d, projection.conics, projection.depths))
-        radii = projection.radii.contiguous()
-        # its tile lists too, when made with these settings: the same outputs as binning again (composite_forward)
-        if projection.tile_lists is not None and projection.tile_lists.tile_size == settings.tile_size:
-            tile_lists = projection.tile_lists.tensors
+        means2d, conics, depths, radii, tile_lists = _reused(projection, dtype, settings)
     else:
         means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
         viewmat = viewmat.detach().to(dtype).contiguous()

@@ -15,8 +15,8 @@ namespace {
 
 template <typename T>
 void forward_impl(const torch::Tensor& radii, const torch::Tensor& means2d, const torch::Tensor& means,
-                  const torch::Tensor& center, const torch::Tensor& ranges, std::vector<int64_t>& gauss, std::vector<int64_t>& pixel, std::vector<T>& rendered,
-                  std::vector<T>& own) {
+                  const torch::Tensor& center, const torch::Tensor& ranges, std::vector<int64_t>& gauss,
+                  std::vector<int64_t>& pixel, std::vector<T>& rendered, std::vector<T>& own) {
   const int64_t n = means.size(0), height = ranges.size(0), width = ranges.size(1);
   const int32_t* rad = radii.data_ptr<int32_t>();
   for (auto* v : {&gauss, &pixel}) v->reserve(n);
