@@ -97,7 +97,7 @@ def test_datamanager_flags_need_a_named_datamanager(tmp_path):
 
 
 def test_a_missing_grid_file_names_the_presets():
-    with pytest.raises(FileNotFoundError, match="does-not-exist.yaml does not exist; .* demo, paper-ablation"):
+    with pytest.raises(FileNotFoundError, match="does-not-exist.yaml does not exist; .* demo, .*paper-ablation"):
         load_grid(Path("does-not-exist.yaml"))
 
 
@@ -219,9 +219,11 @@ def test_the_ray_executor_gives_the_table_of_the_local_one(killed_and_resumed, t
 # ---- the presets -----------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("preset, cells", [("demo", 2), ("paper-table1", 72), ("paper-ablation", 60)])
+@pytest.mark.parametrize("preset, cells", [
+    ("demo", 2), ("paper-table1", 72), ("paper-ablation", 60), ("iui3-redsea-x8", 9), ("synthetic-6k", 10),
+    ("synthetic-15k-paup", 6), ("synthetic-marine-snow", 2), ("paup-enhanced-every", 9)])
 def test_presets_expand_and_every_cell_parses(preset, cells, tmp_path):
-    if preset != "demo":
+    if preset.startswith(("paper-", "iui3-")):
         if not SHARED_SCENE.is_dir():
             pytest.skip(f"{SHARED_SCENE} not found (the shared data beside the repository)")
         for scene in ("IUI3-RedSea", "Curasao", "JapaneseGradens-RedSea", "Panama"):  # stand-ins for the scenes
