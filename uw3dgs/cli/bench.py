@@ -1,5 +1,5 @@
 """`uw-bench GRID.yaml`: run an experiment grid (methods x datasets x seeds x variants; `uw3dgs/bench/grid.py` has
-the file's layout), resumably, on this machine or a Ray cluster, and write its table (docs/evaluation.md,
+the file's layout), resumably, on this machine or a Ray cluster, and write its table (docs/grids.md,
 "Experiment grids")."""
 
 from __future__ import annotations

@@ -206,7 +206,7 @@ def table_entrypoint(argv: list[str]) -> None:
 
     args = tyro.cli(TableArgs, args=argv, prog="uw-eval table",
                     description="A table of runs' metrics: mean +- std over the runs (seeds) of every scene and "
-                                "method, the best of each column in bold (docs/evaluation.md, 'Tables over runs').")
+                                "method, the best of each column in bold (docs/grids.md, 'Tables over runs').")
     try:
         text = run_table(args)
         if args.output is None:

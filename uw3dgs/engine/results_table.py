@@ -1,6 +1,6 @@
 """Tables over runs (`uw-eval table`): find run folders, read their eval JSON, group the runs by scene
 (`experiment_name`) and method (`method_name`), and write the mean +- std over each group's runs (seeds) per metric,
-the best value of every column marked, as Markdown, LaTeX (booktabs), CSV or JSON (docs/evaluation.md, "Tables over
+the best value of every column marked, as Markdown, LaTeX (booktabs), CSV or JSON (docs/grids.md, "Tables over
 runs").
 
     runs = [run_from_results(path, read_results(path)) for path in find_runs([Path("outputs")])]
