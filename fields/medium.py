@@ -79,9 +79,9 @@ class MediumFieldConfig(InstantiateConfig):
     (colour in [0, 1]; 0.02 is about 5 grey levels of an 8-bit image): water is one colour, seabed has texture."""
     open_water_min_uniform: float = 0.5
     """Least share of the empty cells that must look like open water (`open_water_max_std`) for B_inf to be read
-    off them: a hole in the points over textured seabed is not water (docs/medium-recovery.md: read off such holes,
-    red B_inf was 88% off). Below it B_inf is fitted from the far, veiled end of the ranges and the identifiability
-    report says why. 0 takes every empty cell as water (the behaviour before)."""
+    off them: a hole in the points over textured seabed is not water (docs/medium-recovery.md, "B_inf without open
+    water"). Below it B_inf is fitted from the far, veiled end of the ranges and the identifiability report says
+    why. 0 takes every empty cell as water."""
     far_end_quantile: float = 0.9
     """'estimate' without open water reads B_inf off the far, veiled end of the ranges (fields/medium_estimate.py,
     `veiling_light_from_far_end`): the observations beyond this quantile of their ranges. 0 fits B_inf with beta_B

@@ -441,9 +441,8 @@ def veiling_light_from_far_end(point: Tensor, color: Tensor, z: Tensor, quantile
     `fit_medium`; they approach the veiling light from below, and occluded or misread samples pull the plateau
     lower still) and the median colour of the observations beyond the `quantile` of the ranges (the typical surface,
     brighter than the water, approaches it from above). B_inf is the middle of the two; half their distance bounds
-    its error where the bracket holds (the identifiability report checks it, and that the far end is veiled).
-    On the built-in scene without open water: B_inf 4/3/5% off (R/G/B), against 10/16/23% for the plateau alone
-    and 88/30/17% read off holes in the points (docs/medium-recovery.md). Returns (B_inf, below, above)."""
+    its error where the bracket holds (the identifiability report checks it, and that the far end is veiled;
+    docs/medium-recovery.md, "B_inf without open water"). Returns (B_inf, below, above)."""
     below = fit_medium(point, color, z, None, bins, share, residual=residual, steps=steps,
                        max_observations=max_observations).b_inf
     above = far_end_color(z, color, quantile)[1]

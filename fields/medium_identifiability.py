@@ -85,7 +85,7 @@ class IdentifiabilityConfig(CheckedConfig):
 
     tolerance: float = 0.15
     """A parameter is identifiable when the bootstrap half-spread and the other backscatter model's change stay
-    within this share of its value (issue 19's bar for the learned medium)."""
+    within this share of its value (the medium-recovery benchmark's bar for the learned medium)."""
     resamples: int = 8
     """Bootstrap fits (points resampled with replacement)."""
     seed: int = 0
@@ -106,8 +106,7 @@ class IdentifiabilityConfig(CheckedConfig):
     B_inf fitted to the dark samples alone: its distance to the far observations' median colour."""
     spatial_tolerance: float = 0.3
     """The betas vary in space when beta_D fitted to two halves of the scene differs by more than this share of
-    the estimate (docs/medium-recovery.md: the homogeneous variants 0.01-0.36, one channel at most over 0.3; the
-    plume 0.34-0.55)..."""
+    the estimate (docs/medium-recovery.md, "What the report sees of a varying medium")..."""
     spatial_noise_factor: float = 2.0
     """... and by more than this many times the bootstrap half-spread (a half has half the points: its fits
     scatter more)."""
@@ -124,9 +123,8 @@ class IdentifiabilityConfig(CheckedConfig):
     """A relative change of the surfaces' colours over the span of ranges that is not the water's (the texture
     blurs with distance, the relief hides and shows shading): beta_D read over a span of tau optical depths moves
     by about color_drift / tau, so it is flagged where that exceeds the tolerance (under 0.4 optical depths at 6%
-    and 15%). Measured on the synthetic scene's homogeneous variants (docs/medium-recovery.md): fitted with the true
-    backscatter, beta_D is up to 0.012 per unit too high over their 6.8-8.3 units of ranges, a drift of 1-8%
-    (median 6%)."""
+    and 15%). Calibrated on the synthetic scene's homogeneous variants (docs/medium-recovery.md, "The last three
+    misses, and 9C")."""
     dark_albedo: float = 0.03
     """The albedo the darkest surfaces in view may have: a few % for dark rock, sponges and shadowed crevices.
     Their own light, dark_albedo exp(-beta_D z), is what the backscatter fit would read as backscatter if they

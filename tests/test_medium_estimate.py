@@ -151,7 +151,7 @@ DIVE = (torch.tensor([0.30, 0.10, 0.07]), torch.tensor([0.24, 0.20, 0.17]), torc
 
 
 def test_the_residual_term_recovers_a_medium_whose_darkest_surfaces_reflect_8_to_12_percent():
-    """Issue 19's failing case: seen from 3.5 to 22 m, no open water, darkest surfaces 8-12%. The plain fit takes
+    """A scene the plain fit fails on: seen from 3.5 to 22 m, no open water, darkest surfaces 8-12%. The plain fit takes
     them for backscatter and saturates it early (red beta_B 3x too high); with Sea-thru's residual term every
     number is within 10%, and B_inf comes from the far end of the ranges."""
     point, color, z = seabed_observations(3000, 8, (3.5, 22.0), (0.08, 0.12), seed=0, medium=DIVE)
@@ -370,7 +370,7 @@ def test_truth_start_is_the_scene_medium_and_needs_one(make_config):
 
 
 def test_holes_in_the_points_over_seabed_are_not_open_water():
-    """Issue 19, failure (A): a view with no water, the seabed textured everywhere and the points missing over a few
+    """Failure (A): a view with no water, the seabed textured everywhere and the points missing over a few
     cells. Those cells were taken as open water (B_inf read off seabed); with the evidence check (most empty cells
     one colour) they are not, and the reason says so. A view whose top half is water (one colour, a little noise)
     still reads B_inf off it."""
@@ -462,7 +462,7 @@ def varying_medium_observations(num_points: int, views: int, gain: float, seed: 
 
 
 def test_the_report_flags_a_medium_that_varies_in_space():
-    """Issue 19, failure (B): a homogeneous fit to a medium twice as turbid over one half of the seabed is stable
+    """Failure (B): a homogeneous fit to a medium twice as turbid over one half of the seabed is stable
     under the bootstrap, so the other checks call it identifiable. The halves of the scene fitted on their own
     disagree, and the report flags every beta as varying in space. The same scene with a homogeneous medium
     (gain 0) is not flagged."""
@@ -523,7 +523,7 @@ def test_the_built_in_scene_keeps_its_estimate_and_verdicts_and_without_water_re
         torch.testing.assert_close(estimate.b_inf, truth, rtol=0.06, atol=0)
         assert "B_inf B" in weak and "B_inf R" not in weak
         assert all("not off open water" in c.reason for c in report.checks if c.name == "B_inf" and c.reason)
-        # red beta_B, 34% off: the dark patches' own 3% albedo is read as backscatter (issue 19's third miss)
+        # red beta_B, 34% off: the dark patches' own 3% albedo is read as backscatter (the dark-albedo check's case)
         assert "beta_B R" in weak and "reflect 3%" in report.checks[3].reason
 
 

@@ -457,7 +457,7 @@ def test_cli_writes_marine_snow(tmp_path):
     assert all(0.02 <= p["radius"] <= 0.04 for p in particles)
 
 
-# Scene variants (issue 19): water types, darkest albedo, open water, range span, a spatially varying medium. Each is
+# Scene variants: water types, darkest albedo, open water, range span, a spatially varying medium. Each is
 # one option away, and the default scene keeps its bytes and cache key.
 TINY = dataclasses.replace(SMALL, width=32, height=24, num_views=3, num_points=100, terrain_size=12.0,
                            terrain_resolution=0.05)

@@ -1,4 +1,4 @@
-"""Medium recovery across versions of the built-in synthetic scene (issue 19): estimate, trained run, verdict.
+"""Medium recovery across versions of the built-in synthetic scene: estimate, trained run, verdict.
 
     python benchmarks/analysis/medium_recovery.py --steps 3000 --output-dir outputs/medium-recovery
     python benchmarks/analysis/medium_recovery.py --variants default 3C plume-grid plume-homogeneous
@@ -16,7 +16,7 @@ and with the homogeneous field) it
    one), so a spatially varying medium is scored where it varies (also kept: the same at the trained Gaussians'
    centres, and the betas averaged along each test pixel's ray against the true ray mean, what the images see);
 and prints one markdown table: errors in % (R/G/B), the input's and the URI's PSNR against the clean test images,
-the verdict, and whether issue 19's bar is met (identifiable parameters within 15% after training, URI at least
+the verdict, and whether the bar is met (identifiable parameters within 15% after training, URI at least
 6 dB closer to the clean truth than the input), then the verdicts' reasons, then the URI where the water leaves
 the seabed recoverable (`recoverable_psnr`: within the report's recoverable range), then for the varying media the
 three field errors and how the trained field varies (its spread and its correlation with the truth at the seabed
@@ -298,7 +298,7 @@ def percents(errors: list[float]) -> str:
 
 
 def verdict(row: dict) -> tuple[str, str]:
-    """(the weak parameters or 'identifiable', whether issue 19's bar is met: every parameter and channel the report
+    """(the weak parameters or 'identifiable', whether the bar is met: every parameter and channel the report
     calls identifiable within 15% after training and the URI 6 dB above the input's PSNR on the whole image; if not,
     what missed, a URI short of the bar with its gain on the recoverable seabed too)."""
     weak = set(row["weak"])

@@ -24,7 +24,7 @@ Two schedules, the same for both: "static" (the tiles split into one equal block
 default, OpenMP schedule(static)) and "dynamic" (tiles handed out one at a time: numba
 `set_parallel_chunksize(1)`, OpenMP schedule(dynamic, 1), what the project's rasterizer uses). Both
 allocate their outputs uninitialised: in numba `np.zeros` is itself a parallel loop, and the chunk size
-applies to it too, so with chunk size 1 zero-filling a 256x256x3 image took about 40 ms. Outputs
+applies to it too, so with chunk size 1 zero-filling costs more than the kernel (docs/rasterizer.md). Outputs
 must agree with each other, and on a tiny scene with a float64 numpy brute force (every Gaussian on every
 pixel), to 1e-5; the script exits with an error otherwise. It prints Markdown tables.
 

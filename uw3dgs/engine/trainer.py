@@ -238,7 +238,7 @@ class Trainer:
 
     def check_parameters(self, step: int) -> None:
         """Stop the run like a non-finite loss does if a parameter group holds NaN or an infinity. Run every
-        --steps-per-log steps and before every evaluation and checkpoint (about 1 ms per 100,000 Gaussians)."""
+        --steps-per-log steps and before every evaluation and checkpoint."""
         if self._checked_step == step:
             return
         bad = nonfinite(self.model.param_groups())
