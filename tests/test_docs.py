@@ -23,7 +23,7 @@ HASH = re.compile(r"(?<![#\w/.\-=:])[0-9a-f]{7,40}(?![\w/.\-])")
 path, a file name or a longer word (a sha256 in `model-3f2a9c1d.pt`, `/0a1b2c3d/`), not a key=value."""
 HISTORY = re.compile(r"\bissues? #?\d+|issue's bars?|\b(last|this|another|previous) session\b|another day",
                      re.IGNORECASE)
-METRIC_HEADER = re.compile(r"psnr|ssim|lpips|floater|abs\.? ?rel", re.IGNORECASE)
+METRIC_HEADER = re.compile(r"psnr|ssim|lpips|floater|abs\.? ?rel|\bu[wr]i\b", re.IGNORECASE)
 MAKES_TABLE = ("uw-bench configs/", "uw-eval table", "python benchmarks/")
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 
@@ -69,41 +69,15 @@ def anchors(path: Path) -> set[str]:
     return out
 
 
-def rel(path: Path) -> str:
-    return str(path.relative_to(ROOT))
-
-
-# ---- the checks ------------------------------------------------------------------------------------------------------
-
-
-def test_the_checks_see_what_they_look_for():
-    assert commit_hashes("trained by commit e831e00 (and 6690f98)") == ["e831e00", "6690f98"]
-    assert commit_hashes("colour #ffaa00, model-3f2a9c1d.pt, /cache/0a1b2c3d4e/, 1234567 points, a decade") == []
-    assert HISTORY.search("met the issue's bar") and HISTORY.search("see issue 16") and not HISTORY.search("issues")
-    assert slug("PAUP's masked render every N steps") == "paups-masked-render-every-n-steps"
-    assert slug("SeaThru-NeRF scenes (`seathru-nerf`)") == "seathru-nerf-scenes-seathru-nerf"
-    assert slug("The last three misses, and 9C") == "the-last-three-misses-and-9c"
-
-
-@pytest.mark.parametrize("path", DOCS, ids=rel)
-def test_page_size(path):
-    limit = README_LIMIT if path == README else PAGE_LIMIT
-    size = len(path.read_bytes())
-    assert size <= limit, (f"{rel(path)} is {size} bytes, over {limit}: keep one topic per page, conclusions in a "
-                           "sentence with their evidence, history in git and CHANGELOG.md")
-
-
-@pytest.mark.parametrize("path", DOCS, ids=rel)
-def test_no_commit_hashes_or_run_history(path):
+def history(path: Path) -> list[str]:
     found = []
     for number, line, _ in prose_lines(path):
         found += [f"{rel(path)}:{number}: commit hash {token!r}" for token in commit_hashes(line)]
         found += [f"{rel(path)}:{number}: {m.group(0)!r}" for m in HISTORY.finditer(line)]
-    assert not found, "docs state the current truth, history goes to git and CHANGELOG.md:\n" + "\n".join(found)
+    return found
 
 
-@pytest.mark.parametrize("path", DOCS, ids=rel)
-def test_relative_links_resolve(path):
+def broken_links(path: Path) -> list[str]:
     broken = []
     for number, line, fenced in prose_lines(path):
         if fenced:
@@ -117,12 +91,11 @@ def test_relative_links_resolve(path):
                 broken.append(f"{rel(path)}:{number}: {target} (no such file)")
             elif anchor and goal.suffix == ".md" and anchor not in anchors(goal):
                 broken.append(f"{rel(path)}:{number}: {target} (no heading #{anchor} in {goal.name})")
-    assert not broken, "\n".join(broken)
+    return broken
 
 
-@pytest.mark.parametrize("path", DOCS, ids=rel)
-def test_results_tables_show_the_command_that_makes_them(path):
-    """A table with a metric column follows, in its section, the command that re-makes it; a grid it names exists."""
+def tables_without_command(path: Path) -> list[str]:
+    """Tables with a metric column that no command making them (MAKES_TABLE) precedes in their section."""
     missing = []
     section: list[str] = []
     previous = ""
@@ -135,6 +108,57 @@ def test_results_tables_show_the_command_that_makes_them(path):
             missing.append(f"{rel(path)}:{number}: {line[:80]}")
         section.append(line)
         previous = line
+    return missing
+
+
+def rel(path: Path) -> str:
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+# ---- the tests -------------------------------------------------------------------------------------------------------
+
+
+def test_the_checks_see_what_they_look_for(tmp_path):
+    assert commit_hashes("trained by commit e831e00 (and 6690f98)") == ["e831e00", "6690f98"]
+    assert commit_hashes("colour #ffaa00, model-3f2a9c1d.pt, /cache/0a1b2c3d4e/, 1234567 points, a decade") == []
+    assert HISTORY.search("met the issue's bar") and HISTORY.search("see issue 16") and not HISTORY.search("issues")
+    assert slug("PAUP's masked render every N steps") == "paups-masked-render-every-n-steps"
+    assert slug("SeaThru-NeRF scenes (`seathru-nerf`)") == "seathru-nerf-scenes-seathru-nerf"
+    assert slug("The last three misses, and 9C") == "the-last-three-misses-and-9c"
+    page = tmp_path / "page.md"
+    page.write_text("# A\n\n## Made\n\n    uw-bench configs/demo.yaml\n\n| method | PSNR |\n|---|---|\n| a | 1 |\n\n"
+                    "## Not made\n\nTrained at commit 6690f98 (issue 16), see [b](b.md), [a](#made), [c](#nowhere)."
+                    "\n\n| method | URI |\n|---|---|\n| a | 1 |\n")
+    assert [m.split(": ")[0] for m in tables_without_command(page)] == [f"{page}:15"]
+    assert [m.split(": ", 1)[1] for m in history(page)] == ["commit hash '6690f98'", "'issue 16'"]
+    assert [m.split(": ", 1)[1] for m in broken_links(page)] == ["b.md (no such file)",
+                                                                   "#nowhere (no heading #nowhere in page.md)"]
+
+
+@pytest.mark.parametrize("path", DOCS, ids=rel)
+def test_page_size(path):
+    limit = README_LIMIT if path == README else PAGE_LIMIT
+    size = len(path.read_bytes())
+    assert size <= limit, (f"{rel(path)} is {size} bytes, over {limit}: keep one topic per page, conclusions in a "
+                           "sentence with their evidence, history in git and CHANGELOG.md")
+
+
+@pytest.mark.parametrize("path", DOCS, ids=rel)
+def test_no_commit_hashes_or_run_history(path):
+    found = history(path)
+    assert not found, "docs state the current truth, history goes to git and CHANGELOG.md:\n" + "\n".join(found)
+
+
+@pytest.mark.parametrize("path", DOCS, ids=rel)
+def test_relative_links_resolve(path):
+    broken = broken_links(path)
+    assert not broken, "\n".join(broken)
+
+
+@pytest.mark.parametrize("path", DOCS, ids=rel)
+def test_results_tables_show_the_command_that_makes_them(path):
+    """A table with a metric column follows, in its section, the command that re-makes it."""
+    missing = tables_without_command(path)
     assert not missing, ("a results table needs the command that makes it above it in its section "
                          f"({', '.join(MAKES_TABLE)}):\n" + "\n".join(missing))
 
