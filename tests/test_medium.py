@@ -375,7 +375,7 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     """A short uw3dgs run on a small synthetic scene with a known homogeneous medium.
 
     The scene's views show open water (B_inf on its own) and near-black patches (backscatter alone), which
-    is what makes the medium identifiable (README, "UW-3DGS on the built-in synthetic scene": the full-size
+    is what makes the medium identifiable (docs/results.md, "The built-in synthetic scene": the full-size
     scene gets every parameter within 12%). Tolerances, for 12 training views of 64x48 px and 400 steps,
     from seeds 0-2 of this scene: B_inf within 4.8% (bound 10%), beta_D within 2.9% (bound 10%), beta_B
     within 13.3% (bound 20%; red is the worst: the dark patches' albedo 0.03 reads as a little extra
