@@ -50,8 +50,9 @@ def commit_hashes(text: str) -> list[str]:
 
 
 def slug(heading: str) -> str:
-    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
-    text = re.sub(r"[`*_]|\[([^\]]*)\]\([^)]*\)", lambda m: m.group(1) or "", heading.strip().lower())
+    """GitHub's anchor for a heading: lower case, punctuation but hyphens and underscores dropped, spaces to
+    hyphens, a link by its text."""
+    text = re.sub(r"[`*]|\[([^\]]*)\]\([^)]*\)", lambda m: m.group(1) or "", heading.strip().lower())
     return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
 
 
@@ -125,6 +126,7 @@ def test_the_checks_see_what_they_look_for(tmp_path):
     assert slug("PAUP's masked render every N steps") == "paups-masked-render-every-n-steps"
     assert slug("SeaThru-NeRF scenes (`seathru-nerf`)") == "seathru-nerf-scenes-seathru-nerf"
     assert slug("The last three misses, and 9C") == "the-last-three-misses-and-9c"
+    assert slug("`psnr_covisible` and [LPIPS](x.md)") == "psnr_covisible-and-lpips"
     page = tmp_path / "page.md"
     page.write_text("# A\n\n## Made\n\n    uw-bench configs/demo.yaml\n\n| method | PSNR |\n|---|---|\n| a | 1 |\n\n"
                     "## Not made\n\nTrained at commit 6690f98 (issue 16), see [b](b.md), [a](#made), [c](#nowhere)."
