@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
+from uw3dgs.kernels.policy import Kernels, use_compiled
+from uw3dgs.kernels.sh_colors import sh_colors
 from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
-from uw3dgs.render import cpu_backend, sh_kernel
 from uw3dgs.render.sh import MAX_DEGREE, eval_sh_split, rgb_to_sh
 from uw3dgs.utils.profiling import section
 
@@ -29,10 +29,6 @@ class GaussianFieldConfig(InstantiateConfig):
     """Opacity of every initial Gaussian."""
     init_scale_neighbours: int = 3
     """Initial scale = mean distance to this many nearest initial points (isotropic)."""
-    kernel: Literal["compiled", "torch"] = "compiled"
-    """How the view-dependent colours are computed: 'compiled' = one C++ pass per Gaussian with its backward on CPU
-    (uw3dgs/render/sh_kernel.py; the same numbers to float rounding; PyTorch on CUDA or where the compiled backend
-    does not build); 'torch' = the PyTorch expression everywhere (the reference; docs/performance.md compares them)."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -58,16 +54,16 @@ def mean_neighbour_distance(points: Tensor, k: int, chunk: int = 2048) -> Tensor
 class GaussianField(nn.Module):
     """N anisotropic Gaussians; parameters are stored unconstrained (log-scale, logit opacity).
 
-    Built as `config.setup(points=[P, 3], colors=[P, 3] in [0, 1])`: one Gaussian per initial point."""
+    Built as `config.setup(points=[P, 3], colors=[P, 3] in [0, 1], kernels=...)`: one Gaussian per initial point;
+    `kernels` (the model's `--model.kernels`) chooses the compiled colours or PyTorch's."""
 
     param_names = PARAM_NAMES
     """The per-Gaussian parameters (each [N, ...]), in the order density control and checkpoints use."""
 
-    def __init__(self, config: GaussianFieldConfig, points: Tensor, colors: Tensor):
+    def __init__(self, config: GaussianFieldConfig, points: Tensor, colors: Tensor, kernels: Kernels = "compiled"):
         super().__init__()
         self.config = config
-        self.compiled = config.kernel == "compiled"
-        """Colours by the compiled CPU kernel where it applies (a plain attribute: benchmarks switch it)."""
+        self.kernels = kernels
         n = len(points)
         if n == 0:
             raise ValueError("cannot initialise Gaussians from an empty point cloud")
@@ -99,8 +95,8 @@ class GaussianField(nn.Module):
         """View-dependent RGB of every Gaussian seen from `camera_center`, [N, 3], >= 0."""
         with section("sh colours"):
             degree = int(self.active_sh_degree)
-            if self.compiled and cpu_backend.runs_on(self.means):
-                return sh_kernel.sh_colors(self.means, camera_center, self.sh0[:, 0], self.shN, degree)
+            if use_compiled(self.kernels, self.means):
+                return sh_colors(self.means, camera_center, self.sh0[:, 0], self.shN, degree)
             dirs = torch.nn.functional.normalize(self.means - camera_center, dim=-1)
             return (eval_sh_split(degree, self.sh0[:, 0], self.shN, dirs) + 0.5).clamp_min(0.0)
 

@@ -23,10 +23,11 @@ from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.fields.medium_identifiability import IdentifiabilityConfig
-from uw3dgs.fields.vm_kernel import vm_read
+from uw3dgs.kernels.policy import Kernels, use_compiled
+from uw3dgs.kernels.vm_field import vm_read
+from uw3dgs.medium.field import Medium
 from uw3dgs.options import check_number
 from uw3dgs.registry import FieldSpec
-from uw3dgs.render import cpu_backend
 
 RGB = tuple[float, float, float]
 FlatStart = Literal["zero-basis", "constant-factors"]
@@ -43,8 +44,8 @@ def softplus_inverse(y: Tensor) -> Tensor:
 class MediumFieldConfig(InstantiateConfig):
     """Knobs every medium field has: its starting values and how training starts it from the data.
 
-    `setup(points=[P, 3], camera_centers=[C, 3])` builds the field (world units: the initial points and the
-    training cameras, which a spatial field uses to place its box)."""
+    `setup(points=[P, 3], camera_centers=[C, 3], kernels=...)` builds the field (world units: the initial points and
+    the training cameras, which a spatial field uses to place its box; `kernels`, the model's `--model.kernels`)."""
 
     beta_prior: RGB = (0.1, 0.15, 0.2)
     """Initial value of beta_D and beta_B (R, G, B) per dataset unit, and L_beta's pull target with
@@ -143,10 +144,6 @@ class MediumGridConfig(MediumFieldConfig):
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
-    kernel: Literal["compiled", "torch"] = "compiled"
-    """How beta_D and beta_B are read: 'compiled' = both fields and their backward in one C++ pass per point on CPU
-    (fields/vm_kernel.py; the same numbers to float rounding; PyTorch on CUDA or where the compiled backend does not
-    build); 'torch' = PyTorch's grid_sample everywhere (the reference; docs/performance.md compares them)."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -217,7 +214,7 @@ class VMField(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """f at points x [N, 3] in [-1, 1]^3 -> [N, 3], in PyTorch (grid_sample reads): the reference of the
-        compiled kernel (fields/vm_kernel.py), and its path on CUDA."""
+        compiled kernel (uw3dgs/kernels/vm_field.py), and its path on CUDA."""
         return F.softplus((self.basis @ self.features(x)).T + self.bias)
 
     def factors(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -246,9 +243,10 @@ class VMField(nn.Module):
                 + lines.diff(dim=-1).square().sum())
 
 
-class MediumField(nn.Module):
-    """What every medium field is: beta_D, beta_B (RGB, >= 0, per dataset unit) readable anywhere in the
-    world, and the veiling light B_inf [3]. Subclasses implement `betas` and `beta_parameters`."""
+class MediumField(Medium):
+    """What every medium field of `uw3dgs` is (the framework's `Medium`, with a config, L_beta's priors and a start
+    from the data): beta_D, beta_B (RGB, >= 0, per dataset unit) readable anywhere in the world, and the veiling
+    light B_inf [3]. Subclasses implement `betas` and `beta_parameters`."""
 
     def __init__(self, config: MediumFieldConfig):
         super().__init__()
@@ -257,10 +255,6 @@ class MediumField(nn.Module):
         # L_beta's pull targets: beta_prior, or the data's estimate once `set_prior` is called
         self.register_buffer("prior_d", torch.tensor(config.beta_prior, dtype=torch.float32))
         self.register_buffer("prior_b", torch.tensor(config.beta_prior, dtype=torch.float32))
-
-    def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """(beta_D, beta_B) at world points x [N, 3], each [N, 3]."""
-        raise NotImplementedError
 
     def beta_parameters(self) -> list[nn.Parameter]:
         """The parameters that shape beta_D and beta_B (the optimizer group 'medium_beta')."""
@@ -274,10 +268,6 @@ class MediumField(nn.Module):
     def factor_penalty(self) -> Tensor | None:
         """The field's own regularizer, added to L_beta's pull (None: nothing to add)."""
         return None
-
-    def ray_betas(self, origin: Tensor, dirs: Tensor, ranges: Tensor) -> tuple[Tensor, Tensor]:
-        """Mean beta_D, beta_B [P, 3] along rays origin [3] + t dirs [P, 3], t in [0, ranges [P]] (world units)."""
-        raise NotImplementedError
 
     @torch.no_grad()
     def set_prior(self, beta_d: Tensor, beta_b: Tensor) -> None:
@@ -304,13 +294,13 @@ class MediumField(nn.Module):
 class MediumGrid(MediumField):
     """beta_D, beta_B as VM fields over the box [box_min, box_max] (world units), and B_inf."""
 
-    def __init__(self, config: MediumGridConfig, box_min: Tensor, box_max: Tensor):
+    def __init__(self, config: MediumGridConfig, box_min: Tensor, box_max: Tensor, kernels: Kernels = "compiled"):
         super().__init__(config)
         self.register_buffer("box_min", box_min.float().clone())
         self.register_buffer("box_max", box_max.float().clone())
         args = (config.resolution, config.components, config.beta_prior, config.init_std, config.flat_start)
-        self.compiled = config.kernel == "compiled"
-        """Read the fields with the compiled CPU kernel where it applies (a plain attribute: benchmarks switch it)."""
+        self.kernels = kernels
+        """Both fields read in one compiled pass where `use_compiled` says so (PyTorch's grid_sample otherwise)."""
         self.beta_d = VMField(*args)
         self.beta_b = VMField(*args)
         if not config.learn_beta:
@@ -318,14 +308,15 @@ class MediumGrid(MediumField):
             self.beta_b.requires_grad_(False)
 
     @classmethod
-    def around(cls, config: MediumGridConfig, points: Tensor, camera_centers: Tensor) -> MediumGrid:
+    def around(cls, config: MediumGridConfig, points: Tensor, camera_centers: Tensor,
+               kernels: Kernels = "compiled") -> MediumGrid:
         """A medium whose box holds the cameras [C, 3] and (robustly: 1st-99th percentile) the points [P, 3]."""
         lo = torch.quantile(points.float(), 0.01, dim=0) if len(points) else camera_centers.min(0).values
         hi = torch.quantile(points.float(), 0.99, dim=0) if len(points) else camera_centers.max(0).values
         lo = torch.minimum(lo, camera_centers.min(0).values)
         hi = torch.maximum(hi, camera_centers.max(0).values)
         pad = (hi - lo).clamp_min(1e-6) * config.box_padding
-        return cls(config, lo - pad, hi + pad)
+        return cls(config, lo - pad, hi + pad, kernels)
 
     @torch.no_grad()
     def set_homogeneous(self, beta_d: Tensor | None, beta_b: Tensor | None, b_inf: Tensor) -> None:
@@ -345,13 +336,16 @@ class MediumGrid(MediumField):
             return weight * (self.beta_d.factor_norm() + self.beta_b.factor_norm())
         return weight * (self.beta_d.factor_roughness() + self.beta_b.factor_roughness())
 
+    def box(self) -> tuple[Tensor, Tensor]:
+        return self.box_min, self.box_max
+
     def normalize(self, x: Tensor) -> Tensor:
         """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""
         return ((x - self.box_min) / (self.box_max - self.box_min) * 2 - 1).clamp(-1, 1)
 
     def betas(self, x: Tensor) -> tuple[Tensor, Tensor]:
         u = self.normalize(x)
-        if self.compiled and cpu_backend.runs_on(u):  # both fields in one pass: they share the points' cell lookups
+        if use_compiled(self.kernels, u):  # both fields in one pass: they share the points' cell lookups
             both = vm_read(u, [self.beta_d.factors(), self.beta_b.factors()])
             return both[:, 0], both[:, 1]
         return self.beta_d(u), self.beta_b(u)
@@ -371,8 +365,8 @@ class HomogeneousMedium(MediumField):
     """One beta_D, beta_B [3] (softplus of a free parameter, so >= 0) and B_inf [3] everywhere."""
 
     def __init__(self, config: HomogeneousMediumConfig, points: Tensor | None = None,
-                 camera_centers: Tensor | None = None):
-        super().__init__(config)  # a homogeneous medium needs no box: points and cameras are not used
+                 camera_centers: Tensor | None = None, kernels: Kernels = "compiled"):
+        super().__init__(config)  # a homogeneous medium needs no box and no kernel: those are not used
         prior = softplus_inverse(torch.tensor(config.beta_prior, dtype=torch.float32))
         self.beta_d_raw = nn.Parameter(prior.clone(), requires_grad=config.learn_beta)
         self.beta_b_raw = nn.Parameter(prior.clone(), requires_grad=config.learn_beta)
@@ -393,24 +387,6 @@ class HomogeneousMedium(MediumField):
             if beta is not None:
                 raw.copy_(softplus_inverse(beta.to(raw).clamp_min(1e-4)))
         self.b_inf.copy_(b_inf.to(self.b_inf))
-
-
-def form_underwater_image(radiance: Tensor, alpha: Tensor, ranges: Tensor, beta_d: Tensor, beta_b: Tensor,
-                          b_inf: Tensor, dataset_scale: float) -> dict[str, Tensor]:
-    """The formation model for one view.
-
-    radiance [H, W, 3] = sum_i w_i c_i (no background), alpha [H, W] its coverage, ranges [H, W] the
-    expected range of the covered part (world units), beta_* [H, W, 3]. Exponents use dataset units
-    (range x dataset_scale). The uncovered part (1 - alpha) sees open water: no surface, so its
-    backscatter has saturated to B_inf. (Taking it at the scene's far bound instead, B_inf (1 - exp(-beta_B
-    z_far)), falls up to ~20% short of the veiling light that real open water shows when z_far is a few
-    attenuation lengths, and then biases B_inf.)
-    """
-    z = ranges[..., None] * dataset_scale
-    attenuation = torch.exp(-beta_d * z)
-    # a (1 - e^(-beta_B z)) + (1 - a), the covered part's backscatter plus open water's, is 1 - a e^(-beta_B z)
-    backscatter = b_inf * (1 - alpha[..., None] * torch.exp(-beta_b * z))
-    return {"uwi": radiance * attenuation + backscatter, "attenuation": attenuation, "backscatter": backscatter}
 
 
 grid_spec = FieldSpec("medium-grid", "Underwater medium: beta_D, beta_B as VM-decomposed RGB grids, and B_inf (the "

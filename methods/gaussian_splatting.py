@@ -16,6 +16,7 @@ from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
+from uw3dgs.medium.formation import Water
 from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.floaters import floater_ratios
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
@@ -23,7 +24,7 @@ from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import RasterOutput, RasterSettings, rasterize
-from uw3dgs.strategy import DefaultStrategy, DensificationConfig, ExtraPruning
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig, DensityControl
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import depth_to_image
 
@@ -42,11 +43,6 @@ class GaussianSplattingModelConfig(ModelConfig):
     raster: RasterSettings = field(default_factory=RasterSettings)
     ssim_lambda: float = 0.2
     """Image loss = (1 - ssim_lambda) L1 + ssim_lambda D-SSIM."""
-    ssim_kernel: Literal["compiled", "torch"] = "compiled"
-    """How the D-SSIM loss computes SSIM: 'compiled' = one C++ pass set with its backward on CPU
-    (uw3dgs/metrics/ssim_kernel.py; the same numbers to float rounding; PyTorch on CUDA or where the compiled backend
-    does not build); 'torch' = PyTorch's separable convolutions everywhere (the reference; evaluation always uses
-    it)."""
     background: Literal["black", "white", "random"] = "black"
     """Colour behind the Gaussians; 'random' draws one per training step (evaluation uses black)."""
 
@@ -63,7 +59,8 @@ class GaussianSplattingModel(Model):
     def __init__(self, config: GaussianSplattingModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__(config, scene, train_indices)
         self.far_range = float(scene.far)
-        self.gaussians: GaussianField = config.gaussians.setup(points=scene.points, colors=scene.point_colors)
+        self.gaussians: GaussianField = config.gaussians.setup(points=scene.points, colors=scene.point_colors,
+                                                                 kernels=config.kernels)
 
     @property
     def num_gaussians(self) -> int:
@@ -139,6 +136,13 @@ class GaussianSplattingModel(Model):
         outputs["rgb"] = self.over_background(outputs.pop("radiance"), outputs["alpha"])
         return outputs
 
+    def render_view(self, camera: Camera, water: Water | None = None) -> dict[str, Tensor]:
+        """`Model.render_view`: the radiance over the evaluation background (never the random one), alpha, range."""
+        out = self.render(camera)
+        background = torch.full((3,), 1.0 if self.config.background == "white" else 0.0, device=out["alpha"].device)
+        return {"rgb": out["radiance"] + (1.0 - out["alpha"][..., None]) * background, "alpha": out["alpha"],
+                "range": out["range"]}
+
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
         """Adds `depth_abs_rel` (rendered against true range) where the dataset has true ranges; None (missing)
         where the render covers no pixel with a true surface."""
@@ -165,7 +169,7 @@ class GaussianSplattingModel(Model):
         lam = self.config.ssim_lambda
         pred, gt = outputs["rgb"], batch["image"]
         with section("loss: L1 + D-SSIM"):
-            return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt, self.config.ssim_kernel)}
+            return {"rgb_loss": (1 - lam) * l1_loss(pred, gt) + lam * dssim_loss(pred, gt, self.config.kernels)}
 
     def get_metrics_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float]:
         return {"psnr": float(psnr(outputs["rgb"].detach().clamp(0, 1), batch["image"])),
@@ -174,44 +178,6 @@ class GaussianSplattingModel(Model):
     def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
         return {"gt": batch["image"], "render": outputs["rgb"].clamp(0, 1),
                 "depth": depth_to_image(outputs["range"], outputs["alpha"])}
-
-
-class DensityControl(TrainingCallback):
-    """Runs a density-control strategy in the training loop; its statistics are checkpointed."""
-
-    name = "densification"
-
-    def __init__(self, strategy: DefaultStrategy, gaussians: GaussianField, optimizers: Optimizers,
-                 extra_pruning: ExtraPruning | None = None):
-        self.strategy = strategy
-        self.gaussians = gaussians
-        self.optimizers = optimizers
-        self.extra_pruning = extra_pruning
-        """Another criterion pruning at the same events (PAUP); its per-Gaussian state follows every change."""
-        self.state = strategy.initialize_state(gaussians)
-
-    @section("densification")
-    def after_backward(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
-        camera = batch["camera"]
-        self.strategy.step_post_backward(self.state, step, outputs["means2d"], outputs["radii"],
-                                         (camera.width, camera.height))
-
-    @section("densification")
-    def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
-        extra, strategy = self.extra_pruning, self.strategy
-        event = extra is not None and (strategy.is_refine_step(step) or (
-            extra.prunes_after_densification and strategy.is_late_prune_step(step)))
-        remove = extra.select(step) if event else None
-        origin = strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step, remove)
-        if extra is not None and origin is not None:
-            extra.reindex(origin)
-
-    def state_dict(self) -> dict[str, Any]:
-        return dict(self.state)
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        device = self.gaussians.means.device
-        self.state = {name: value.clone().to(device) for name, value in state.items()}
 
 
 def gaussian_optimizers(means_lr: float = 1.6e-4, means_lr_final: float = 1.6e-6, opacity_lr: float = 0.05,

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting

@@ -18,6 +18,7 @@ from test_rasterizer import Scene, assert_matches_reference, brute_force, random
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+from uw3dgs.kernels import build as kernel_build
 from uw3dgs.render import RasterSettings, cpu_backend, masked_l1, rasterize
 from uw3dgs.render.rasterize import BACKENDS, select_backend
 from uw3dgs.render.reference import rasterize_reference
@@ -29,9 +30,9 @@ F64 = torch.float64
 def extension():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        module = cpu_backend.load_extension()
+        module = kernel_build.load_extension()
     if module is None:
-        pytest.skip(f"the C++ CPU rasterizer could not be built here: {cpu_backend._state.get('error')}")
+        pytest.skip(f"the C++ CPU rasterizer could not be built here: {kernel_build._state.get('error')}")
     return module
 
 
@@ -234,7 +235,7 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch: pytest.MonkeyPatch)
     def fail(*args, **kwargs):
         raise RuntimeError("no C++ compiler")
 
-    monkeypatch.setattr(cpu_backend, "_state", {})
+    monkeypatch.setattr(kernel_build, "_state", {})
     monkeypatch.setattr(cpp_extension, "load", fail)
     scene = random_scene(10, 40)
     with warnings.catch_warnings(record=True) as caught:
@@ -254,18 +255,18 @@ def test_each_checkout_builds_into_its_own_folder(tmp_path: Path, monkeypatch: p
     folders = []
     for checkout in ("a", "b"):
         copies = []
-        for source in [*cpu_backend.SOURCES, *cpu_backend.HEADERS]:
+        for source in [*kernel_build.SOURCES, *kernel_build.HEADERS]:
             copy = tmp_path / checkout / source.name
             copy.parent.mkdir(parents=True, exist_ok=True)
             copy.write_bytes(source.read_bytes())
             copies.append(copy)
-        monkeypatch.setattr(cpu_backend, "SOURCES", copies[:len(cpu_backend.SOURCES)])
-        monkeypatch.setattr(cpu_backend, "HEADERS", copies[len(cpu_backend.SOURCES):])
-        folders.append(cpu_backend.build_directory())
-        assert cpu_backend.build_directory() == folders[-1]
+        monkeypatch.setattr(kernel_build, "SOURCES", copies[:len(kernel_build.SOURCES)])
+        monkeypatch.setattr(kernel_build, "HEADERS", copies[len(kernel_build.SOURCES):])
+        folders.append(kernel_build.build_directory())
+        assert kernel_build.build_directory() == folders[-1]
     assert folders[0] != folders[1] and folders[0].parent == folders[1].parent
     copies[0].write_bytes(copies[0].read_bytes() + b"\n")
-    assert cpu_backend.build_directory() != folders[1]
+    assert kernel_build.build_directory() != folders[1]
 
 
 def test_a_build_lock_left_by_a_killed_build_is_removed_and_a_live_one_waited_for(tmp_path: Path) -> None:
@@ -275,14 +276,14 @@ def test_a_build_lock_left_by_a_killed_build_is_removed_and_a_live_one_waited_fo
     dead.wait()
     (tmp_path / "build.pid").write_text(f"{socket.gethostname()} {dead.pid}")
     (tmp_path / "lock").touch()
-    with pytest.warns(RuntimeWarning, match="did not finish"), cpu_backend.build_lock(tmp_path):
+    with pytest.warns(RuntimeWarning, match="did not finish"), kernel_build.build_lock(tmp_path):
         assert (tmp_path / "build.pid").read_text() == f"{socket.gethostname()} {os.getpid()}"
         assert not (tmp_path / "lock").exists()
     assert not (tmp_path / "build.pid").exists()  # released
     # another host's lock: judged by its age
     (tmp_path / "build.pid").write_text("elsewhere 1")
-    os.utime(tmp_path / "build.pid", (time.time() - 2 * cpu_backend.STALE_LOCK_SECONDS,) * 2)
-    with pytest.warns(RuntimeWarning, match="did not finish"), cpu_backend.build_lock(tmp_path):
+    os.utime(tmp_path / "build.pid", (time.time() - 2 * kernel_build.STALE_LOCK_SECONDS,) * 2)
+    with pytest.warns(RuntimeWarning, match="did not finish"), kernel_build.build_lock(tmp_path):
         pass
     # a live holder (this process, from another thread's point of view): waited for until it lets go
     holder = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.5)"])
@@ -291,7 +292,7 @@ def test_a_build_lock_left_by_a_killed_build_is_removed_and_a_live_one_waited_fo
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with cpu_backend.build_lock(tmp_path, poll=0.05):
+        with kernel_build.build_lock(tmp_path, poll=0.05):
             pass
     assert time.perf_counter() - start >= 0.3
     holder.wait()

@@ -22,13 +22,13 @@ from conftest import tiny_train_config, train
 
 from uw3dgs.cli.eval import EvalArgs, print_results, run_eval
 from uw3dgs.cli.eval import entrypoint as uw_eval
-from uw3dgs.cli.synth import entrypoint as uw_synth
 from uw3dgs.cli.train import entrypoint as uw_train
 from uw3dgs.cli.train import parse_config
 from uw3dgs.config import config_to_dict, load_config
 from uw3dgs.data.colmap_dataset import DatasetError
 from uw3dgs.data.seathru_layout import read_seathru_scene
 from uw3dgs.datamanagers.synthetic import cached_scene
+from uw3dgs.datamanagers.synthetic.cli import entrypoint as uw_synth
 from uw3dgs.engine.checkpoint import list_checkpoints, load_checkpoint, nonfinite
 from uw3dgs.engine.evaluator import evaluate_views
 from uw3dgs.engine.optimizers import ParamGroupConfig

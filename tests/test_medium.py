@@ -11,10 +11,11 @@ from conftest import tiny_train_config
 
 from uw3dgs.cli.train import entrypoint, parse_config
 from uw3dgs.config import config_from_dict, config_to_dict
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField, form_underwater_image
-from uw3dgs.fields.vm_kernel import vm_read
+from uw3dgs.fields.medium import MediumGrid, MediumGridConfig, VMField
+from uw3dgs.kernels.vm_field import vm_read
+from uw3dgs.medium.formation import form_underwater_image
 from uw3dgs.metrics.image import psnr
 from uw3dgs.options import OptionError
 from uw3dgs.registry import METHODS
@@ -185,11 +186,11 @@ def test_compiled_vm_read_is_bitwise_deterministic_across_threads():
 
 @pytest.mark.parametrize("flat_start", ["zero-basis", "constant-factors"])
 def test_medium_grid_reads_the_same_betas_compiled_or_not(flat_start):
-    """`--model.medium.kernel torch` and 'compiled' give the same betas and gradients (float32, to rounding), with
+    """`--model.kernels torch` and 'compiled' give the same betas and gradients (float32, to rounding), with
     the factors of either flat start made to vary."""
     torch.manual_seed(0)
     medium = MediumGrid(MediumGridConfig(flat_start=flat_start), -torch.ones(3), torch.ones(3))
-    assert medium.compiled
+    assert medium.kernels == "compiled"
     with torch.no_grad():
         for field in (medium.beta_d, medium.beta_b):
             torch.nn.init.normal_(field.basis, std=0.3)
@@ -197,15 +198,15 @@ def test_medium_grid_reads_the_same_betas_compiled_or_not(flat_start):
             field.lines.add_(0.1 * torch.randn_like(field.lines))
     x = torch.rand(500, 3) * 3 - 1.5  # some outside the box: read at its border
     results = []
-    for compiled in (True, False):
-        medium.compiled = compiled
+    for kernels in ("compiled", "torch"):
+        medium.kernels = kernels
         medium.zero_grad()
         beta_d, beta_b = medium.betas(x)
         (beta_d.square().sum() + beta_b.sum()).backward()
         results.append([beta_d.detach(), beta_b.detach(), *(p.grad.clone() for p in medium.beta_parameters())])
     for a, b in zip(*results, strict=True):  # relative to each tensor's largest value: float32's resolution there
         assert float((a - b).abs().max() / b.abs().max()) < 1e-5
-    assert MediumGrid(MediumGridConfig(kernel="torch"), -torch.ones(3), torch.ones(3)).compiled is False
+    assert MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3), "torch").kernels == "torch"
 
 
 def test_field_starts_flat_at_the_prior():
@@ -237,7 +238,7 @@ def test_constant_factors_start_flat_at_the_estimate(compiled):
     everywhere (to float rounding of the bias taking up the basis' constant), and L_beta's roughness is 0."""
     torch.manual_seed(0)
     medium = MediumGrid(MediumGridConfig(**LIVE), torch.zeros(3), torch.ones(3))
-    medium.compiled = compiled
+    medium.kernels = "compiled" if compiled else "torch"
     x = torch.rand(500, 3) * 1.4 - 0.2  # some outside the box: read at its border
     prior = torch.tensor(MediumGridConfig().beta_prior)
     for value, expected in zip(medium.betas(x), (prior, prior), strict=True):

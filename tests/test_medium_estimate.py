@@ -499,7 +499,7 @@ def test_the_built_in_scene_keeps_its_estimate_and_verdicts_and_without_water_re
     88% off); now it is read off the far end of the ranges (4/3/5% off), and the report flags blue, whose far end
     is not veiled, saying why."""
     from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-    from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+    from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
     from uw3dgs.fields.medium_estimate import estimate_from_views
     from uw3dgs.registry import METHODS
 

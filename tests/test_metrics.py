@@ -7,10 +7,10 @@ import pytest
 import torch
 from scipy.ndimage import correlate
 
+from uw3dgs.kernels import build as kernel_build
+from uw3dgs.methods.uw3dgs.depth_consistency import depth_consistency
 from uw3dgs.metrics.depth import range_abs_rel
-from uw3dgs.metrics.depth_consistency import depth_consistency
 from uw3dgs.metrics.image import MSE_FLOOR, dssim_loss, l1_loss, psnr, ssim
-from uw3dgs.render import cpu_backend
 
 
 def reference_ssim(pred: np.ndarray, gt: np.ndarray) -> float:
@@ -137,7 +137,7 @@ def test_ssim_gradient_matches_finite_differences(single_thread):
     assert torch.autograd.gradcheck(ssim, (pred, gt), eps=1e-6, atol=1e-5)
 
 
-compiled_ssim = pytest.mark.skipif(not cpu_backend.is_available(), reason="the compiled backend does not build here")
+compiled_ssim = pytest.mark.skipif(not kernel_build.is_available(), reason="the compiled backend does not build here")
 
 
 @compiled_ssim
@@ -244,7 +244,7 @@ def test_depth_consistency_matches_its_definition(weighted):
     scale = sorted(rendered)[(len(rendered) - 1) // 2]  # the lower median
     expected = sum(w * abs(r - z) / scale for r, z, w in terms) / len(terms)
     for kernel in ("torch", "compiled"):
-        if kernel == "compiled" and not cpu_backend.is_available():
+        if kernel == "compiled" and not kernel_build.is_available():
             continue
         got = depth_consistency(ranges, means, means2d, radii, center, weights, kernel)
         assert float(got) == pytest.approx(expected, rel=1e-12), kernel
@@ -255,7 +255,7 @@ def test_depth_consistency_matches_its_definition(weighted):
 def test_compiled_depth_consistency_matches_pytorch(dtype, tolerance, weighted):
     """Loss and gradients (ranges, means) of the compiled L_z against the PyTorch path in float64, relative to each
     tensor's largest value, with several Gaussians on a pixel and the kink of |.| at 0."""
-    if not cpu_backend.is_available():
+    if not kernel_build.is_available():
         pytest.skip("the compiled CPU backend does not build here")
     scene = _depth_consistency_scene(1, 5000)
 

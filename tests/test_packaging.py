@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -50,11 +51,11 @@ def test_wheel_holds_only_the_uw3dgs_package(wheel):
         assert any(n.startswith(f"uw3dgs/{sub}/") for n in names), sub
     for grid in ROOT.glob("configs/*.yaml"):
         assert f"uw3dgs/configs/{grid.name}" in names
-    from uw3dgs.render.cpu_backend import HEADERS, SOURCES
+    from uw3dgs.kernels.build import HEADERS, SOURCES
 
     assert HEADERS
     for source in [*SOURCES, *HEADERS]:  # the compiled CPU kernels build from these on first use
-        assert f"uw3dgs/render/csrc/{source.name}" in names
+        assert f"uw3dgs/kernels/{source.name}" in names
 
 
 def test_every_source_package_is_packaged():
@@ -117,28 +118,65 @@ def test_third_party_plugin_method_appears(fresh_venv, tmp_path):
     assert "(default: 7)" in run([uw_train, "demo-plugin-method", "--help"], cwd="/").stdout
 
 
-def test_third_party_field_plugin_is_chosen_by_name(fresh_venv, tmp_path):
-    """A medium field from another package, registered through the `uw3dgs.fields` entry point: its knobs in
-    `uw-train uw3dgs --model.medium-field NAME --help`, and a run trains with it and records it."""
+def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_shows(fresh_venv, tmp_path):
+    """A medium field from another package, registered through the `uw3dgs.fields` entry point, with a class of its
+    own that varies in space: its knobs in `uw-train uw3dgs --model.medium-field NAME --help`, a run trains with it
+    and records it, and uw-export, uw-render and the viewer serve it through the framework's interfaces alone."""
     install_plugin(fresh_venv, tmp_path, "uw3dgs_field_demo", """
         from dataclasses import dataclass
-        from uw3dgs.fields.medium import HomogeneousMediumConfig
+
+        import torch
+
+        from uw3dgs.config import Target, target
+        from uw3dgs.fields.medium import HomogeneousMedium, HomogeneousMediumConfig
         from uw3dgs.registry import FieldSpec
+
+
+        class LayeredWater(HomogeneousMedium):
+            \"\"\"Murkier towards +z inside the unit box.\"\"\"
+
+            def box(self):
+                return -torch.ones(3), torch.ones(3)
+
+            def betas(self, x):
+                beta_d, beta_b = super().betas(x)
+                factor = 1.0 + 0.5 * torch.sigmoid(x[:, 2:3])
+                return beta_d * factor, beta_b * factor
+
 
         @dataclass(frozen=True)
         class ClearWaterConfig(HomogeneousMediumConfig):
+            _target: Target = target(lambda: LayeredWater)
             turbidity_note: str = "clear"
             \"\"\"A knob only this field has.\"\"\"
 
-        field = FieldSpec("demo-clear-water", "Nearly clear water (a plugin)", ClearWaterConfig(), kind="medium")
+        field = FieldSpec("demo-clear-water", "Layered water (a plugin)", ClearWaterConfig(), kind="medium")
     """, "uw3dgs.fields", "demo-clear-water = \"uw3dgs_field_demo:field\"")
-    uw_train = str(fresh_venv / "bin" / "uw-train")
+    bin_dir = fresh_venv / "bin"
     chosen = ["uw3dgs", "--model.medium-field", "demo-clear-water"]
-    assert "--model.medium.turbidity-note" in run([uw_train, *chosen, "--help"], cwd="/").stdout
+    assert "--model.medium.turbidity-note" in run([str(bin_dir / "uw-train"), *chosen, "--help"], cwd="/").stdout
     args = [*chosen, "--max-num-iterations", "2", "--steps-per-save", "2", "--no-progress", "--model.raster.backend",
             "torch", "--output-dir", str(tmp_path / "out"), "--timestamp", "t", "synthetic",
             "--datamanager.scene.width", "32", "--datamanager.scene.height", "24", "--datamanager.scene.num-views",
             "9", "--datamanager.cache-dir", str(tmp_path / "cache")]
-    run([uw_train, *args], cwd="/")
-    saved = (tmp_path / "out" / "synthetic" / "uw3dgs" / "t" / "config.yml").read_text()
+    run([str(bin_dir / "uw-train"), *args], cwd="/")
+    config = tmp_path / "out" / "synthetic" / "uw3dgs" / "t" / "config.yml"
+    saved = config.read_text()
     assert "medium_field: demo-clear-water" in saved and "uw3dgs_field_demo.ClearWaterConfig" in saved
+    run([str(bin_dir / "uw-export"), str(config), "--output", str(tmp_path / "scene.ply"), "--medium-samples", "3"],
+        cwd="/")
+    medium = json.loads((tmp_path / "medium.json").read_text())
+    assert medium["kind"] == "grid" and medium["shape"] == [3, 3, 3]
+    run([str(bin_dir / "uw-render"), str(config), "--path", "test", "--outputs", "uwi,uri,backscatter", "--images",
+         str(tmp_path / "frames")], cwd="/")
+    assert list((tmp_path / "frames").glob("*.png"))
+    shown = run([str(bin_dir / "python"), "-c", f"""
+from uw3dgs.engine.evaluator import load_trained
+from uw3dgs.viewer.render import MEDIUM_OUTPUTS, available_outputs, render_image
+_, datamanager, model, _ = load_trained({str(config)!r}, "cpu")
+assert available_outputs(model) == MEDIUM_OUTPUTS
+for output in MEDIUM_OUTPUTS:
+    assert render_image(model, datamanager.scene.cameras[0], output).shape == (24, 32, 3)
+print("viewer ok")
+"""], cwd="/")
+    assert "viewer ok" in shown.stdout

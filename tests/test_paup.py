@@ -16,12 +16,12 @@ from uw3dgs.cameras import Camera
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.methods.gaussian_splatting import COVERAGE_EPS, DensityControl
+from uw3dgs.kernels import build as kernel_build
+from uw3dgs.methods.gaussian_splatting import COVERAGE_EPS
 from uw3dgs.methods.uw3dgs import UW3DGSModelConfig, uw3dgs_optimizers
-from uw3dgs.paup import PAUP, FloaterScorer, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
+from uw3dgs.methods.uw3dgs.paup import PAUP, FloaterScorer, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.registry import METHODS
-from uw3dgs.render import cpu_backend
-from uw3dgs.strategy import DefaultStrategy
+from uw3dgs.strategy import DefaultStrategy, DensityControl
 
 
 def tiny_uw3dgs(make_config, name: str = "uw3dgs", steps: int = 30, paup_start: int = 5, **paup):
@@ -127,7 +127,7 @@ def test_compiled_phi_matches_pytorch(dtype, tolerance, monotone):
 
     def run(compiled: bool, dtype: torch.dtype) -> list[torch.Tensor]:
         model = copy.deepcopy(scorer).to(dtype)
-        model.compiled = compiled
+        model.kernels = "compiled" if compiled else "torch"
         x = pus.to(dtype, copy=True).requires_grad_()
         (model(x) * weights.to(dtype)).sum().backward()
         return [model(x).detach(), x.grad, *(p.grad for p in model.phi.parameters())]
@@ -146,13 +146,14 @@ def test_compiled_phi_matches_pytorch(dtype, tolerance, monotone):
 
 
 def test_compiled_phi_gradients_against_finite_differences():
-    from uw3dgs.paup.scorer import _FloaterMLP
+    from uw3dgs.kernels.paup_scorer import FloaterMLP
 
     torch.manual_seed(0)
     x = (torch.rand(20, dtype=torch.float64) * 4).requires_grad_()
     w1, b1, w2, b2 = (torch.randn(n, dtype=torch.float64, requires_grad=True) for n in (8, 8, 8, 1))
-    assert torch.autograd.gradcheck(_FloaterMLP.apply, (x, w1, b1, w2, b2))
-    assert not PAUP(PAUPConfig(kernel="torch"), 3).scorer.compiled and PAUP(PAUPConfig(), 3).scorer.compiled
+    assert torch.autograd.gradcheck(FloaterMLP.apply, (x, w1, b1, w2, b2))
+    assert PAUP(PAUPConfig(), 3, "torch").scorer.kernels == "torch"
+    assert PAUP(PAUPConfig(), 3).scorer.kernels == "compiled"
 
 
 def test_phi_starts_rising_with_the_score_at_its_stated_midpoint():
@@ -232,17 +233,18 @@ def planted_floater_model(mask: str = "expected", **paup):
 
 
 def test_compiled_paup_step_matches_pytorch():
-    """`--model.paup.kernel compiled` (phi compiled, the masked render and its L1 fused) against `torch` (phi in
+    """`--model.kernels compiled` (phi compiled, the masked render and its L1 fused) against `torch` (phi in
     PyTorch, a frozen render and PyTorch's L1): the same I_UR^Enh, L_PAPSL and scorer gradients to rounding."""
     results = []
     for kernel in ("compiled", "torch"):
         model, cameras = planted_floater_model()
-        model.paup.scorer.compiled = model.paup.fused_masked_l1 = kernel == "compiled"
+        model.paup.scorer.kernels = kernel
+        model.paup.fused_masked_l1 = kernel == "compiled"
         model.train()
         model.paup.set_step(0)
         outputs = model.get_outputs(cameras[0])
         fused = type(outputs["uri_enhanced_l1"].grad_fn).__name__ == "_MaskedL1Backward"
-        assert fused == (kernel == "compiled" and cpu_backend.is_available())
+        assert fused == (kernel == "compiled" and kernel_build.is_available())
         loss = model.get_loss_dict(outputs, {"camera": cameras[0], "image": torch.zeros(30, 40, 3)}, step=0)
         loss["paup_loss"].backward()
         scorer = model.paup.scorer

@@ -17,7 +17,8 @@ from uw3dgs.cli.process_data import entrypoint
 from uw3dgs.data.colmap_dataset import denormalize_points
 from uw3dgs.data.datamanager import AutoDataManagerConfig
 from uw3dgs.datamanagers.colmap import ColmapDataManagerConfig
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, generate_scene
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.scene import generate_scene
 from uw3dgs.datamanagers.uwbundle import apply_similarity, umeyama
 
 # 12 views of a forward pass at 160x120, looking 20 degrees ahead of straight down (see test_uwbundle.py on

@@ -12,12 +12,13 @@ from torch import Tensor
 
 from uw3dgs.cameras import Camera
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
-from uw3dgs.render import RasterSettings, cpu_backend, rasterize
+from uw3dgs.kernels import build as kernel_build
+from uw3dgs.kernels.sh_colors import sh_colors
+from uw3dgs.render import RasterSettings, rasterize
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.rasterize import BACKENDS, register_backend, select_backend
 from uw3dgs.render.reference import rasterize_reference
 from uw3dgs.render.sh import eval_sh, eval_sh_split, rgb_to_sh, sh_to_rgb
-from uw3dgs.render.sh_kernel import sh_colors
 
 F64 = torch.float64
 
@@ -343,7 +344,7 @@ def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: 
     fresh projection) gives the same render, opacity gradient and per-Gaussian weights with the full render's
     projection, and in the compiled backend its tile lists: bitwise there, to rounding in the reference (its tiles'
     padded Gaussian lists grow)."""
-    if backend == "cpu" and not cpu_backend.is_available():
+    if backend == "cpu" and not kernel_build.is_available():
         pytest.skip("the compiled backend does not build here")
     scene = random_scene(5, 400)
     settings = RasterSettings(backend=backend)
@@ -457,17 +458,16 @@ def test_compiled_sh_colours_gradients_against_finite_differences() -> None:
 
 
 def test_gaussian_field_colours_compiled_or_torch_agree() -> None:
-    """`--model.gaussians.kernel compiled` (default) and `torch` colour a field the same (float rounding)."""
+    """`--model.kernels compiled` (default) and `torch` colour a field the same (float rounding)."""
     field = GaussianField(GaussianFieldConfig(), torch.randn(500, 3), torch.rand(500, 3))
-    assert field.compiled and not GaussianField(GaussianFieldConfig(kernel="torch"), torch.randn(9, 3),
-                                                torch.rand(9, 3)).compiled
+    assert field.kernels == "compiled"
     with torch.no_grad():
         field.shN.normal_(std=0.2)
     field.set_step(10_000)
     center = torch.tensor([0.0, 0.0, -3.0])
     colours = []
-    for compiled in (True, False):
-        field.compiled = compiled
+    for kernels in ("compiled", "torch"):
+        field.kernels = kernels
         colours.append(field.colors(center))
     torch.testing.assert_close(colours[0], colours[1], rtol=1e-5, atol=1e-6)
 

@@ -13,16 +13,11 @@ import pycolmap
 import pytest
 from PIL import Image
 
-from uw3dgs.cli.synth import entrypoint
 from uw3dgs.data.seathru_layout import read_seathru_layout
-from uw3dgs.datamanagers.synthetic.scene import (
-    SyntheticSceneConfig,
-    beta_field,
-    cache_key,
-    generate_scene,
-    medium_parameters,
-    underwater_image,
-)
+from uw3dgs.datamanagers.synthetic.cli import entrypoint
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig, cache_key
+from uw3dgs.datamanagers.synthetic.rendering import beta_field, medium_parameters, underwater_image
+from uw3dgs.datamanagers.synthetic.scene import generate_scene
 from uw3dgs.datamanagers.synthetic.water_types import (
     JERLOV_KD,
     SOLONENKO_MOBLEY_A,

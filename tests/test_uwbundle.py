@@ -23,13 +23,10 @@ from uw3dgs.data.colmap_dataset import denormalize_points
 from uw3dgs.data.datamanager import AutoDataManagerConfig
 from uw3dgs.data.sfm import FixedCamera, SfmError, run_sfm
 from uw3dgs.datamanagers import uwbundle
-from uw3dgs.datamanagers.synthetic.scene import (
-    SyntheticSceneConfig,
-    build_terrain,
-    camera_poses,
-    medium_parameters,
-    underwater_image,
-)
+from uw3dgs.datamanagers.synthetic.cameras import camera_poses
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.rendering import medium_parameters, underwater_image
+from uw3dgs.datamanagers.synthetic.terrain import build_terrain
 from uw3dgs.datamanagers.uwbundle import (
     CalibCamera,
     CalibError,

@@ -21,10 +21,11 @@ from conftest import run_command, train
 from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
+from uw3dgs.medium.formation import Water, form_with_water
 from uw3dgs.registry import METHODS
 from uw3dgs.render.camera_path import matrix_to_quaternion
 from uw3dgs.viewer.camera import camera_to_viser, viser_to_camera
-from uw3dgs.viewer.render import Water, form_with_water, learned_b_inf, render_image, render_outputs
+from uw3dgs.viewer.render import learned_b_inf, render_image, render_outputs
 
 CHROMIUM = next((p for p in ("/usr/bin/chromium", "/usr/bin/chromium-browser", shutil.which("chromium") or "",
                              shutil.which("google-chrome") or "") if p and Path(p).exists()), None)
@@ -105,19 +106,19 @@ def test_the_water_control_at_k_1_is_the_models_uwi_and_at_k_0_the_uri(uw3dgs_ru
     with torch.no_grad():
         own = model.get_outputs(camera)
     same = render_outputs(model, camera, Water(k=1.0))
-    assert torch.equal(same["uwi"], own["rgb"]) and torch.equal(same["uri"], own["uri"])
-    torch.testing.assert_close(render_outputs(model, camera, Water(1.0, learned_b_inf(model)))["uwi"], own["rgb"],
+    assert torch.equal(same["rgb"], own["rgb"]) and torch.equal(same["uri"], own["uri"])
+    torch.testing.assert_close(render_outputs(model, camera, Water(1.0, learned_b_inf(model)))["rgb"], own["rgb"],
                                atol=1e-6, rtol=0)
     torch.testing.assert_close(same["attenuation"], own["attenuation"])
-    assert torch.equal(render_outputs(model, camera, Water(k=0.0))["uwi"], own["uri"])
-    murky = render_outputs(model, camera, Water(k=3.0, b_inf=(0.0, 0.5, 0.0)))["uwi"]
+    assert torch.equal(render_outputs(model, camera, Water(k=0.0))["rgb"], own["uri"])
+    murky = render_outputs(model, camera, Water(k=3.0, b_inf=(0.0, 0.5, 0.0)))["rgb"]
     assert (murky - own["rgb"]).abs().max() > 0.05
     for output in ("UWI", "URI", "depth", "attenuation", "backscatter"):
         image = render_image(model, camera, output)
         assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3)
     with pytest.raises(ValueError, match="k must be >= 0"):
         form_with_water(own["uri"], own["alpha"], own["range"], own["beta_d"], own["beta_b"], model.medium.b_inf,
-                        model.dataset_scale, -1.0)
+                        model.dataset_scale, Water(k=-1.0))
 
 
 def test_a_viewer_render_leaves_the_rng_and_the_model_as_they_were(uw3dgs_run):

@@ -18,7 +18,7 @@ import time
 from torch import Tensor
 
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.fields.medium import MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
 from uw3dgs.fields.medium_identifiability import assess_medium

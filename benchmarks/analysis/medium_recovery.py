@@ -38,7 +38,8 @@ import torch
 
 from uw3dgs.cli.train import entrypoint as train_entrypoint
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, beta_field, ray_mean_factor
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.rendering import beta_field, ray_mean_factor
 from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.fields.medium_estimate import estimate_from_views

@@ -30,7 +30,7 @@ from pathlib import Path
 import torch
 
 from uw3dgs.engine.evaluator import load_trained
-from uw3dgs.fields.medium import form_underwater_image
+from uw3dgs.medium.formation import form_underwater_image
 from uw3dgs.metrics.depth import COVERED
 from uw3dgs.render.rasterize import rasterize
 

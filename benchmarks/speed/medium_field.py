@@ -8,7 +8,7 @@ range differentiable as in training; 19,608 = the 172x114 pixels of IUI3-RedSea 
 one thread, best of `--repeats`, each way, and checks the first and last agree. The row-major form, [N, 3R]
 features times the basis (how uw3dgs did it first), makes the plane x line products and their backward work on
 transposed, strided data; channel-major PyTorch is the reference and the CUDA path; the compiled kernel
-(fields/vm_kernel.py, `--model.medium.kernel compiled`) reads both fields in one C++ pass per point. Whole
+(uw3dgs/kernels/vm_field.py, `--model.kernels compiled`) reads both fields in one C++ pass per point. Whole
 training steps: `benchmarks/speed/training_step.py`, `benchmarks/speed/step_profile.py`.
 """
 
@@ -25,7 +25,7 @@ from uw3dgs.fields.medium import VM_MODES, MediumGrid, MediumGridConfig, VMField
 
 CHANNEL_MAJOR = VMField.forward
 COMPILED = "compiled"
-"""The way that reads with the compiled kernel (MediumGrid.compiled), VMField.forward left channel-major."""
+"""The way that reads with the compiled kernel (`--model.kernels compiled`), VMField.forward left channel-major."""
 
 
 def forward_row_major(field: VMField, x: Tensor) -> Tensor:
@@ -46,8 +46,7 @@ def field_pass(points: int, compiled: bool, seed: int = 0) -> tuple[Callable[[],
     the last call's betas and gradients (ranges and every factor)."""
     g = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3))
-    medium.compiled = compiled
+    medium = MediumGrid(MediumGridConfig(), -torch.ones(3), torch.ones(3), "compiled" if compiled else "torch")
     with torch.no_grad():
         for field in (medium.beta_d, medium.beta_b):
             field.basis.normal_(generator=g)

@@ -28,7 +28,7 @@ applies to it too, so with chunk size 1 zero-filling costs more than the kernel 
 must agree with each other, and on a tiny scene with a float64 numpy brute force (every Gaussian on every
 pixel), to 1e-5; the script exits with an error otherwise. It prints Markdown tables.
 
-The C++ build uses the project's own flags (`uw3dgs.render.cpu_backend.CFLAGS` plus the AVX2/AVX-512
+The C++ build uses the project's own flags (`uw3dgs.kernels.build.CFLAGS` plus the AVX2/AVX-512
 flags it adds on this CPU); numba compiles for the host CPU. numba is a benchmark-only dependency:
 `pip install -c constraints.txt numba`.
 """
@@ -58,7 +58,7 @@ NUMBA_IMPORT_S = time.perf_counter() - _t0
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root
 from uw3dgs.data.cache import default_cache_dir  # noqa: E402
-from uw3dgs.render.cpu_backend import CFLAGS, _simd_flags  # noqa: E402
+from uw3dgs.kernels.build import CFLAGS, _simd_flags  # noqa: E402
 from uw3dgs.utils.console import info  # noqa: E402
 
 TILE = 16
@@ -262,7 +262,7 @@ def build_cpp(build_root: Path):
     """
     from torch.utils import cpp_extension
 
-    bin_dir = str(Path(sys.executable).parent)  # ninja from the venv, as uw3dgs.render.cpu_backend does
+    bin_dir = str(Path(sys.executable).parent)  # ninja from the venv, as uw3dgs.kernels.build does
     os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
     build_root.mkdir(parents=True, exist_ok=True)
     folder = tempfile.mkdtemp(prefix="numba_vs_cpp_", dir=build_root)

@@ -8,7 +8,7 @@ the run's latest checkpoint and trains `--steps` more steps, one thread; the mea
 pays, so the window should span statistics refreshes (`--model.paup.every`) and densification events. "with
 PAUP" is the method as it trains; "without PAUP" removes the branch from the same model (no masked render, no
 second render, no statistics, no L_PAPSL, no pruning by m, plain depth: a `uw3dgs-no-paup` step); "PAUP in
-PyTorch" is the method with PAUP's compiled passes switched off (`--model.paup.kernel torch`: phi in PyTorch, the
+PyTorch" is the method with PAUP's compiled passes switched off (`--model.kernels torch`: phi in PyTorch, the
 masked render a frozen render followed by PyTorch's L1); `--enhanced-every N ...` adds, per N, the branch with its
 masked render and L_PAPSL every N steps (`--model.paup.enhanced-every`) on the same checkpoint. The ways alternate
 `--rounds` times; the best mean of each
@@ -19,12 +19,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
-from timing import mean_training_steps  # the sibling benchmark script, next to this one
+from timing import Way, mean_training_steps, with_kernels  # the sibling benchmark script, next to this one
 
 
 def without_paup(trainer: Any) -> None:
@@ -35,17 +34,13 @@ def without_paup(trainer: Any) -> None:
             callback.extra_pruning = None
 
 
-def paup_in_pytorch(trainer: Any) -> None:
-    """PAUP's per-step work without its compiled passes (what `--model.paup.kernel torch` builds)."""
-    trainer.model.paup.scorer.compiled = trainer.model.paup.fused_masked_l1 = False
-
-
-def enhanced_every(steps: int) -> Callable[[Any], None]:
-    """What makes a built trainer's PAUP render I_UR^Enh every `steps` steps (`--model.paup.enhanced-every`)."""
-    def install(trainer: Any) -> None:
-        paup = trainer.model.paup
-        paup.config = dataclasses.replace(paup.config, enhanced_every=steps)
-    return install
+def enhanced_every(steps: int) -> Way:
+    """The run with PAUP's I_UR^Enh every `steps` steps (`--model.paup.enhanced-every`)."""
+    def configure(config: Any) -> Any:
+        model = config.model
+        return dataclasses.replace(config, model=dataclasses.replace(
+            model, paup=dataclasses.replace(model.paup, enhanced_every=steps)))
+    return Way(configure=configure)
 
 
 def main() -> None:
@@ -57,8 +52,8 @@ def main() -> None:
                         help="also time the branch with I_UR^Enh every N steps, for each N")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    ways = {"without PAUP (uw3dgs-no-paup)": without_paup, "with PAUP (uw3dgs)": lambda trainer: None,
-            "PAUP in PyTorch": paup_in_pytorch,
+    ways = {"without PAUP (uw3dgs-no-paup)": Way(install=without_paup), "with PAUP (uw3dgs)": Way(),
+            "PAUP in PyTorch": Way(configure=with_kernels("torch")),
             **{f"with PAUP, I_UR^Enh every {n} steps": enhanced_every(n) for n in args.enhanced_every}}
     mean = mean_training_steps(args.config, ways, args.steps, args.rounds)
     base = mean["without PAUP (uw3dgs-no-paup)"]

@@ -57,7 +57,7 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str
     from uw3dgs.render import RasterSettings, rasterize
 
     if backend == "cpu":
-        from uw3dgs.render.cpu_backend import load_extension
+        from uw3dgs.kernels.build import load_extension
 
         if load_extension() is None:
             return {"error": "extension did not build"}

@@ -9,8 +9,8 @@ coefficients, sh[:, 0] * Y_0 + sh[:, 1] * Y_1 + ..., is how 3DGS writes it and h
 benchmark: under autograd every `sh[:, i]` gives a backward that allocates and accumulates a full
 [N, 16, 3] gradient, 16 times per step. The middle way is one batched product with autograd's backward,
 whose coefficient gradient (an outer product per Gaussian) runs as a slow batched matmul; uw3dgs's own
-backward (`_BandProduct`) makes it a broadcast multiply: the PyTorch path (`--model.gaussians.kernel torch`, the
-reference, and the path on CUDA). The compiled kernel (uw3dgs/render/sh_kernel.py) does directions, basis, product,
+backward (`_BandProduct`) makes it a broadcast multiply: the PyTorch path (`--model.kernels torch`, the
+reference, and the path on CUDA). The compiled kernel (uw3dgs/kernels/sh_colors.py) does directions, basis, product,
 offset, clamp and their backward in one C++ pass per Gaussian. Whole training steps:
 `benchmarks/speed/training_step.py`, `benchmarks/speed/step_profile.py`.
 """
@@ -23,8 +23,8 @@ import torch
 from timing import compare_cli  # benchmarks/speed/timing.py, next to this script
 from torch import Tensor
 
+from uw3dgs.kernels.sh_colors import sh_colors
 from uw3dgs.render.sh import C0, _basis, eval_sh_split, num_sh_bases
-from uw3dgs.render.sh_kernel import sh_colors
 
 
 def eval_sh_per_term(degree: int, dc: Tensor, rest: Tensor, dirs: Tensor) -> Tensor:

@@ -28,9 +28,25 @@ def best_ms(fn: Callable[[], None], repeats: int) -> float:
     return min(times) * 1000
 
 
-def training_step(config: Path, scratch: Path) -> tuple[Callable[[], None], Any]:
+@dataclasses.dataclass(frozen=True)
+class Way:
+    """One way of running a training step: `configure` changes the run's config before the trainer is built (e.g.
+    `--model.kernels torch`), `install` swaps an alternative implementation in (benchmarks' own variants, which are
+    no config option; called again before each of the way's timings, since such swaps may be module-wide)."""
+
+    configure: Callable[[Any], Any] | None = None
+    install: Callable[[Any], None] | None = None
+
+
+def with_kernels(kernels: str) -> Callable[[Any], Any]:
+    """A `Way.configure` giving the run's model this `--model.kernels` policy."""
+    return lambda config: dataclasses.replace(config, model=dataclasses.replace(config.model, kernels=kernels))
+
+
+def training_step(config: Path, scratch: Path, way: Way = Way()) -> tuple[Callable[[], None], Any]:
     """One more training step of a trained run per call, resumed from a copy of its latest checkpoint in
-    `scratch` (the run itself is not touched); and the Trainer that runs them."""
+    `scratch` (the run itself is not touched), the run's config changed and the trainer changed by `way`; and the
+    Trainer that runs them."""
     from uw3dgs.config import load_config
     from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, latest_checkpoint
     from uw3dgs.engine.trainer import Trainer
@@ -39,6 +55,8 @@ def training_step(config: Path, scratch: Path) -> tuple[Callable[[], None], Any]
     checkpoint = latest_checkpoint(config.parent)
     if checkpoint is None:
         raise SystemExit(f"{config.parent} holds no checkpoint; train it first")
+    if way.configure is not None:
+        saved = way.configure(saved)
     copy = scratch / "bench" / saved.method_name / "run" / CHECKPOINT_DIR
     copy.mkdir(parents=True)
     shutil.copy(checkpoint, copy / checkpoint.name)
@@ -55,31 +73,32 @@ def training_step(config: Path, scratch: Path) -> tuple[Callable[[], None], Any]
     return run, trainer
 
 
-def time_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], repeats: int) -> dict[str, float]:
-    """Best ms per training step of the run at `config` with each way switched on (each callable installs
-    its implementation, given the Trainer); the ways alternate, so all see the same drift of the machine and
-    of the model."""
+def time_training_steps(config: Path, ways: dict[str, Way], repeats: int) -> dict[str, float]:
+    """Best ms per training step of the run at `config` run each way (one trainer per way, from the same
+    checkpoint); the ways alternate, so all see the same drift of the machine."""
     best = dict.fromkeys(ways, float("inf"))
     with tempfile.TemporaryDirectory() as scratch:
-        step, trainer = training_step(config, Path(scratch))
+        runs = {name: training_step(config, Path(scratch) / str(i), way) for i, (name, way) in enumerate(ways.items())}
         for _ in range(2):
-            for name, install in ways.items():
-                install(trainer)
+            for name, (step, trainer) in runs.items():
+                if ways[name].install is not None:
+                    ways[name].install(trainer)
                 best[name] = min(best[name], best_ms(step, repeats))
     return best
 
 
-def mean_training_steps(config: Path, ways: dict[str, Callable[[Any], None]], steps: int,
+def mean_training_steps(config: Path, ways: dict[str, Way], steps: int,
                         rounds: int) -> dict[str, float]:
     """Mean ms per training step over `steps` consecutive steps of the run at `config`, each way on a fresh copy
     of its latest checkpoint (so every way trains the same model through the same refreshes and densification
     events); the ways alternate `rounds` times and each keeps its best mean."""
     best = dict.fromkeys(ways, float("inf"))
     for _ in range(rounds):
-        for name, install in ways.items():
+        for name, way in ways.items():
             with tempfile.TemporaryDirectory() as scratch:
-                step, trainer = training_step(config, Path(scratch))
-                install(trainer)
+                step, trainer = training_step(config, Path(scratch), way)
+                if way.install is not None:
+                    way.install(trainer)
                 start = time.perf_counter()
                 for _ in range(steps):
                     step()

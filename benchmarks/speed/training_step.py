@@ -20,39 +20,30 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import torch
 from medium_field import CHANNEL_MAJOR, forward_row_major  # the sibling benchmark scripts, next to this one
 from sh_eval import eval_sh_autograd_product, eval_sh_per_term
-from timing import time_training_steps
+from timing import Way, time_training_steps, with_kernels
 
 import uw3dgs.fields.gaussians as gaussians_module
 from uw3dgs.fields.medium import VMField
 from uw3dgs.render.sh import eval_sh_split
 
 
-def installer(sh_compiled: bool = True, sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR,
-              compiled: bool = True, fused: bool = True, losses_compiled: bool = True) -> Callable[[Any], None]:
-    """Switch the running trainer to these implementations (a built Adam reads its flag at every step);
-    `losses_compiled` False: L_z and PAUP's phi and masked render + L1 in PyTorch."""
+def way(kernels: str = "compiled", sh: Callable = eval_sh_split, medium: Callable = CHANNEL_MAJOR,
+        fused: bool = True) -> Way:
+    """A training step with `--model.kernels kernels` and these PyTorch variants of the SH colours and the VM read
+    (used where the kernels are 'torch') and of Adam (a built Adam reads its flag at every step)."""
 
     def install(trainer) -> None:
-        model = trainer.model
-        model.gaussians.compiled = sh_compiled
         gaussians_module.eval_sh_split = sh  # GaussianField.colors calls the module-level name
         VMField.forward = medium
-        if getattr(model, "medium", None) is not None and hasattr(model.medium, "compiled"):
-            model.medium.compiled = compiled
-        if hasattr(model, "depth_loss_kernel"):
-            model.depth_loss_kernel = "compiled" if losses_compiled else "torch"
-        if getattr(model, "paup", None) is not None:
-            model.paup.scorer.compiled = model.paup.fused_masked_l1 = losses_compiled
         for optimizer in trainer.optimizers.optimizers.values():
             for group in optimizer.param_groups:
                 group["fused"] = fused
 
-    return install
+    return Way(configure=with_kernels(kernels), install=install)
 
 
 def main() -> None:
@@ -62,17 +53,13 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     ways = {
-        "now": installer(),
-        "SH: PyTorch, not compiled": installer(sh_compiled=False),
-        "SH: PyTorch, autograd's backward": installer(sh_compiled=False, sh=eval_sh_autograd_product),
-        "medium: PyTorch, not compiled": installer(compiled=False),
-        "medium: PyTorch row-major": installer(medium=forward_row_major, compiled=False),
-        "Adam per-operation loop": installer(fused=False),
-        "L_z, PAUP's phi and masked L1: PyTorch": installer(losses_compiled=False),
-        "all undone": installer(False, eval_sh_autograd_product, forward_row_major, compiled=False, fused=False,
-                                losses_compiled=False),
-        "and SH one term per function": installer(False, eval_sh_per_term, forward_row_major, compiled=False,
-                                                  fused=False, losses_compiled=False),
+        "now": way(),
+        "--model.kernels torch": way("torch"),
+        "Adam per-operation loop": way(fused=False),
+        "kernels torch, SH autograd's backward": way("torch", sh=eval_sh_autograd_product),
+        "kernels torch, medium row-major": way("torch", medium=forward_row_major),
+        "all undone": way("torch", eval_sh_autograd_product, forward_row_major, fused=False),
+        "and SH one term per function": way("torch", eval_sh_per_term, forward_row_major, fused=False),
     }
     best = time_training_steps(args.config, ways, args.repeats)
     gaussians_module.eval_sh_split, VMField.forward = eval_sh_split, CHANNEL_MAJOR

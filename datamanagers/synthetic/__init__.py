@@ -12,7 +12,8 @@ from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.downscale import downscale_scene
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.seathru_layout import read_seathru_layout
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, cache_key, generate_scene
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig, cache_key
+from uw3dgs.datamanagers.synthetic.scene import generate_scene
 from uw3dgs.registry import DataManagerSpec
 from uw3dgs.utils.io import atomic_folder
 

@@ -34,7 +34,6 @@ class ExportArgs:
 def run_export(args: ExportArgs) -> tuple[Path, Path | None, int]:
     """Write the PLY (and medium.json); returns (PLY path, medium path or None, Gaussians written)."""
     from uw3dgs.engine.evaluator import load_trained
-    from uw3dgs.export.medium import medium_summary
     from uw3dgs.export.ply import gaussian_rows, write_ply
     from uw3dgs.utils.io import unwritable_reason, write_json
 
@@ -48,14 +47,14 @@ def run_export(args: ExportArgs) -> tuple[Path, Path | None, int]:
     _, datamanager, model, checkpoint = load_trained(args.load_config, "cpu", step=args.step)
     gaussians = getattr(model, "gaussians", None)
     if gaussians is None:
-        raise ValueError(f"{args.load_config}: the method's model has no Gaussians to export")
+        raise ValueError(f"{args.load_config}: a {type(model).__name__} has no Gaussians to export as a PLY; render "
+                         "it with uw-render instead")
     scene = datamanager.scene
     rows = gaussian_rows(gaussians, scene.dataset_center, scene.dataset_scale)
     write_ply(args.output, rows)
-    medium = getattr(model, "medium", None)
-    if medium is None:
+    summary = model.export_medium(scene.dataset_center, scene.dataset_scale, args.medium_samples)
+    if summary is None:
         return args.output, None, len(rows)
-    summary = medium_summary(medium, scene.dataset_center, scene.dataset_scale, args.medium_samples)
     write_json(medium_path, {"checkpoint": str(checkpoint), **summary})
     return args.output, medium_path, len(rows)
 

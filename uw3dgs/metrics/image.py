@@ -7,14 +7,12 @@ as the 3DGS papers do.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from uw3dgs.metrics.ssim_kernel import ssim_compiled
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels.policy import Kernels, use_compiled
+from uw3dgs.kernels.ssim import ssim_compiled
 
 MSE_FLOOR = 1e-10
 """PSNR uses max(mse, MSE_FLOOR), so identical images score 100 dB instead of inf and means stay finite."""
@@ -81,20 +79,20 @@ def _gaussian_blur(images: Tensor) -> Tensor:
     return F.conv2d(x, horizontal, padding=(0, radius), groups=channels)
 
 
-def ssim(pred: Tensor, gt: Tensor, kernel: Literal["torch", "compiled"] = "torch") -> Tensor:
+def ssim(pred: Tensor, gt: Tensor, kernel: Kernels = "torch") -> Tensor:
     """Structural similarity exactly as the 3DGS codebase computes it, one value per image.
 
     11x11 Gaussian window (sigma 1.5), C1 = 0.01^2, C2 = 0.03^2, per-channel zero-padded 'same'
     filtering, and the mean of the SSIM map over pixels and channels. Differentiable, so it also
     drives the D-SSIM training loss. Returns a 0-dim tensor for [H, W, C] and [B] for [B, H, W, C].
-    `kernel` 'compiled': the compiled CPU kernel (metrics/ssim_kernel.py) for CPU images of float32 or float64 when
+    `kernel` 'compiled': the compiled CPU kernel (uw3dgs/kernels/ssim.py) for CPU images of float32 or float64 when
     it is built and gt needs no gradient; else this PyTorch path, the reference.
     """
     _check_pair(pred, gt)
     batched = pred.ndim == 4
     if not batched:
         pred, gt = pred[None], gt[None]
-    if kernel == "compiled" and cpu_backend.runs_on(pred) and gt.device.type == "cpu" and not gt.requires_grad:
+    if use_compiled(kernel, pred) and gt.device.type == "cpu" and not gt.requires_grad:
         taps = _gaussian_window(pred.dtype, pred.device)
         per_image = ssim_compiled(pred, gt, taps, SSIM_C1, SSIM_C2)
         return per_image if batched else per_image[0]
@@ -113,7 +111,7 @@ def ssim(pred: Tensor, gt: Tensor, kernel: Literal["torch", "compiled"] = "torch
     return per_image if batched else per_image[0]
 
 
-def dssim_loss(pred: Tensor, gt: Tensor, kernel: Literal["torch", "compiled"] = "torch") -> Tensor:
+def dssim_loss(pred: Tensor, gt: Tensor, kernel: Kernels = "torch") -> Tensor:
     """D-SSIM training term 1 - SSIM (3DGS's convention, not (1 - SSIM) / 2), averaged over images; `kernel` as
     in `ssim`."""
     return 1.0 - ssim(pred, gt, kernel).mean()

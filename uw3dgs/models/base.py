@@ -14,6 +14,8 @@ from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData, scene_extent
 from uw3dgs.engine.callbacks import TrainingCallback
 from uw3dgs.engine.optimizers import Optimizers
+from uw3dgs.kernels.policy import Kernels
+from uw3dgs.medium.formation import Water
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.registry import field_spec
@@ -22,6 +24,11 @@ from uw3dgs.registry import field_spec
 @dataclass(frozen=True)
 class ModelConfig(InstantiateConfig):
     _target: Target = target(lambda: Model)
+    kernels: Kernels = "compiled"
+    """The compiled CPU kernels or their PyTorch references for every part of the model that has both (colours, the
+    medium's reads, SSIM of the loss, the method's own losses and passes): 'compiled' = compiled where the tensors are
+    CPU float32/float64 and the module builds, PyTorch elsewhere (CUDA); 'torch' = PyTorch everywhere (the reference;
+    the same numbers to float rounding). The rasterizer is chosen by --model.raster.backend."""
 
     field_slots: ClassVar[dict[str, tuple[str, str]]] = {}
     """Model parts chosen by registry name: selector option -> (the option holding that part's config, the
@@ -118,6 +125,29 @@ class Model(nn.Module):
         (`notes/NAME.json`) after `initialize_from_data` and uw-eval copies into its JSON ('notes'). Default:
         none."""
         return {}
+
+    # What the viewing and export commands ask of a model (uw-render, uw-viewer, uw-export): no command looks at a
+    # model's class or its fields.
+
+    def render_view(self, camera: Camera, water: Water | None = None) -> dict[str, Tensor]:
+        """One view as the viewer and uw-render show it, called under no_grad, possibly from another thread while
+        training: it must change no state (no train/eval switch, no random numbers drawn). 'rgb' [H, W, 3] the
+        rendered image (for a method with water, the underwater image), 'alpha' [H, W], 'range' [H, W] (world units;
+        the far bound where nothing covers a pixel); and where the method has them 'uri' (the water-free image),
+        'attenuation', 'backscatter' [H, W, 3]. `water`: the water control (`veiling_light` not None), None = as
+        learned. Default: `get_outputs` (a model whose outputs depend on its mode overrides this)."""
+        return self.get_outputs(camera)
+
+    def veiling_light(self) -> Tensor | None:
+        """The learned B_inf [3] where the model forms its image through `uw3dgs.medium.formation` (the viewer then
+        offers its water control and `render_view` takes a `Water`); None without one. Default: None."""
+        return None
+
+    def export_medium(self, dataset_center: tuple[float, float, float], dataset_scale: float,
+                      samples: int) -> dict | None:
+        """The learned medium as `uw-export` writes it (`uw3dgs.medium.field.Medium.summary`, in the dataset frame;
+        `samples` points per axis for one that varies in space); None for a method without one. Default: None."""
+        return None
 
     def state_keys_resized_in_training(self) -> set[str]:
         """state_dict keys whose first dimension changes during training (density control changes the number of

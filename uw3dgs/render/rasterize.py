@@ -7,20 +7,17 @@ picks the highest-priority backend for the device of the Gaussians.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
+from uw3dgs.kernels import compositing
 from uw3dgs.render import gsplat_backend
-from uw3dgs.render.cpu_backend import masked_l1_cpu, rasterize_cpu
+from uw3dgs.render.cpu_backend import rasterize_cpu
 from uw3dgs.render.reference import rasterize_reference
-from uw3dgs.render.types import RasterOutput, RasterSettings
-
-RasterFn = Callable[..., RasterOutput]
-"""(means, quats, scales, opacities, features, viewmat, K, width, height, settings, projection) -> RasterOutput."""
+from uw3dgs.render.types import RasterFn, RasterOutput, RasterSettings
 
 
 @dataclass(frozen=True)
@@ -105,7 +102,7 @@ def masked_l1(projection: RasterOutput, opacities: Tensor, features: Tensor, tar
     take the mean instead."""
     if select_backend(settings.backend, opacities.device) != "cpu":
         return None
-    return masked_l1_cpu(projection, opacities, features, target, camera.width, camera.height, settings)
+    return compositing.masked_l1(projection, opacities, features, target, camera.width, camera.height, settings)
 
 
 register_backend("torch", rasterize_reference, devices=("cpu", "cuda", "mps"), priority=0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 from torch import Tensor
 
@@ -85,3 +86,11 @@ class RasterOutput:
     weight_sum: Tensor
     pixel_count: Tensor
     tile_lists: TileLists | None = None
+
+
+class RasterFn(Protocol):
+    """A rasterizer backend (`rasterize.register_backend`): `rasterize_reference`'s contract and numbers."""
+
+    def __call__(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
+                 viewmat: Tensor, K: Tensor, width: int, height: int, settings: RasterSettings,
+                 projection: RasterOutput | None = None) -> RasterOutput: ...

@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 
 from uw3dgs.options import CheckedConfig, check_number
-from uw3dgs.render.projection import quat_to_rotmat
 from uw3dgs.strategy.base import GaussianParameters, OptimizerSurgery
+from uw3dgs.strategy.ops import append, duplicated, remove_all_but, reset_opacity, split_samples
 
 State = dict[str, Tensor]
 """'grad_accum' [N] (summed NDC gradient norms), 'visible_count' [N], 'max_radii' [N] (largest screen
@@ -123,7 +123,7 @@ class DefaultStrategy:
         elif remove is not None and bool(remove.any()):
             origin = self.prune(gaussians, optimizers, state, remove)
         if c.reset_opacity_every > 0 and step > 0 and step % c.reset_opacity_every == 0 and step <= self.refine_stop:
-            self.reset_opacity(gaussians, optimizers)
+            reset_opacity(gaussians, optimizers, c.reset_opacity_value)
         return origin
 
     @torch.no_grad()
@@ -143,9 +143,9 @@ class DefaultStrategy:
 
         n_before = g.means.shape[0]
         # both from the Gaussians as they were, before either set of new ones is appended
-        cloned, split_off = self._clone_values(g, clone), self._split_values(g, split)
-        self._append(g, optimizers, cloned)
-        self._append(g, optimizers, split_off)
+        cloned, split_off = duplicated(g, clone), split_samples(g, split, c.split_samples)
+        append(g, optimizers, cloned)
+        append(g, optimizers, split_off)
         # split originals are removed; so is what is transparent and, after the first reset, too big
         keep = torch.ones(g.means.shape[0], dtype=torch.bool, device=g.means.device)
         keep[:n_before][split] = False
@@ -159,7 +159,7 @@ class DefaultStrategy:
             max_radii = torch.cat([state["max_radii"], state["max_radii"].new_zeros(len(keep) - n_before)])
             too_big |= max_radii > c.prune_screen_size
             keep &= ~too_big
-        self._keep(g, optimizers, keep)
+        remove_all_but(g, optimizers, keep)
         state.update(self.initialize_state(g))
         origin = torch.cat([torch.arange(n_before, device=keep.device),
                             torch.full((len(keep) - n_before,), -1, dtype=torch.long, device=keep.device)])
@@ -171,47 +171,6 @@ class DefaultStrategy:
         """Remove the Gaussians in `remove` [N] (bool) with their optimizer state, nothing else. Returns `origin`
         [N'] (long), each survivor's index before."""
         keep = ~remove
-        self._keep(gaussians, optimizers, keep)
+        remove_all_but(gaussians, optimizers, keep)
         state.update(self.initialize_state(gaussians))
         return torch.arange(len(keep), device=keep.device)[keep]
-
-    @staticmethod
-    def _clone_values(g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:
-        return {name: getattr(g, name).detach()[mask] for name in g.param_names}
-
-    def _split_values(self, g: GaussianParameters, mask: Tensor) -> dict[str, Tensor]:
-        """Each selected Gaussian becomes `split_samples` smaller ones sampled from its own distribution."""
-        k = self.config.split_samples
-        values = {name: getattr(g, name).detach()[mask].repeat_interleave(k, dim=0) for name in g.param_names}
-        scales = torch.exp(values["scales"])
-        rot = quat_to_rotmat(values["quats"])
-        offsets = torch.einsum("nij,nj->ni", rot, torch.randn_like(scales) * scales)
-        values["means"] = values["means"] + offsets
-        values["scales"] = torch.log(scales / (0.8 * k))  # 3DGS shrinks split Gaussians by 1.6 for k = 2
-        return values
-
-    @staticmethod
-    def _append(g: GaussianParameters, optimizers: OptimizerSurgery, values: dict[str, Tensor]) -> None:
-        n_new = values["means"].shape[0]
-        if n_new == 0:
-            return
-        current = {name: getattr(g, name).detach() for name in g.param_names}
-        swapped = g.set_params({name: torch.cat([current[name], values[name]]) for name in g.param_names})
-        for name, (old, new) in swapped.items():
-            # new Gaussians start with zero Adam moments
-            optimizers.replace_param(name, old, new, lambda m, n=n_new: torch.cat([m, m.new_zeros((n, *m.shape[1:]))]))
-
-    @staticmethod
-    def _keep(g: GaussianParameters, optimizers: OptimizerSurgery, keep: Tensor) -> None:
-        if bool(keep.all()):
-            return
-        swapped = g.set_params({name: getattr(g, name).detach()[keep] for name in g.param_names})
-        for name, (old, new) in swapped.items():
-            optimizers.replace_param(name, old, new, lambda m: m[keep])
-
-    @torch.no_grad()
-    def reset_opacity(self, g: GaussianParameters, optimizers: OptimizerSurgery) -> None:
-        limit = torch.logit(torch.tensor(self.config.reset_opacity_value)).item()
-        swapped = g.set_params({"opacities": g.opacities.detach().clamp_max(limit)})
-        old, new = swapped["opacities"]
-        optimizers.replace_param("opacities", old, new, torch.zeros_like)

@@ -21,9 +21,10 @@ import numpy as np
 import torch
 
 from uw3dgs.cameras import Camera
+from uw3dgs.medium.formation import Water
 from uw3dgs.render.camera_path import camera_to_world
 from uw3dgs.viewer.camera import camera_to_viser, up_direction, viser_to_camera
-from uw3dgs.viewer.render import Water, available_outputs, has_medium, learned_b_inf, render_image
+from uw3dgs.viewer.render import available_outputs, has_medium, learned_b_inf, render_image
 
 THUMBNAIL_PX = 96
 """Long side in pixels of the images shown in the camera frustums."""

@@ -1,9 +1,8 @@
-"""SSIM as one compiled CPU kernel with its backward to the prediction (`uw3dgs/render/csrc/ssim.cpp`, built with
-the CPU rasterizer): the map of `uw3dgs.metrics.image.ssim` (3DGS's window and constants) in a few passes over
-memory. The same numbers as the PyTorch path to float rounding, deterministic whatever the thread count
-(tests/test_metrics.py). The D-SSIM training loss uses it for CPU images of float32 or float64 when the extension is
-built (`--model.ssim-kernel compiled`, the default); PyTorch elsewhere: the reference, the path on CUDA and the
-one evaluation uses."""
+"""SSIM as one compiled CPU kernel with its backward to the prediction (`ssim.cpp`): the map of
+`uw3dgs.metrics.image.ssim` (3DGS's window and constants) in a few passes over memory. The same numbers as the
+PyTorch path to float rounding, deterministic whatever the thread count (tests/test_metrics.py). The D-SSIM training
+loss uses it under `--model.kernels compiled` (the default) for CPU images; PyTorch elsewhere: the reference, the path
+on CUDA and the one evaluation uses."""
 
 from __future__ import annotations
 
@@ -11,7 +10,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels.build import extension
 
 
 class _SSIMSum(torch.autograd.Function):
@@ -19,7 +18,7 @@ class _SSIMSum(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, pred, gt, taps, c1, c2):
-        ext = cpu_backend.load_extension()
+        ext = extension()
         out = ext.ssim_forward(pred, gt, taps, c1, c2, ctx.needs_input_grad[0])
         if ctx.needs_input_grad[0]:
             ctx.save_for_backward(pred, gt, taps, out[1])
@@ -29,7 +28,7 @@ class _SSIMSum(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, grad_sum):
         pred, gt, taps, derivatives = ctx.saved_tensors
-        g_pred = cpu_backend.load_extension().ssim_backward(pred, gt, derivatives, taps, grad_sum)
+        g_pred = extension().ssim_backward(pred, gt, derivatives, taps, grad_sum)
         return g_pred, None, None, None, None
 
 

@@ -7,9 +7,9 @@ import math
 
 import torch
 from torch import Tensor, nn
-from torch.autograd.function import once_differentiable
 
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels.paup_scorer import floater_probability
+from uw3dgs.kernels.policy import Kernels, use_compiled
 
 MONOTONE_FLOOR = 1e-4
 """Starting weight of the monotone phi's output units that the plain phi starts at 0 (a softplus reaches 0 only
@@ -25,10 +25,10 @@ class FloaterScorer(nn.Module):
     "Is m a floater score?"): dropping a floater changes the training image, dropping a hidden Gaussian does not."""
 
     def __init__(self, hidden_units: int, init_weight: float, init_score: float, init_sharpness: float,
-                 monotone: bool = False, compiled: bool = True):
+                 monotone: bool = False, kernels: Kernels = "compiled"):
         super().__init__()
-        self.compiled = compiled
-        """phi by the compiled CPU kernel where it applies (a plain attribute: benchmarks switch it)."""
+        self.kernels = kernels
+        """phi compiled where `use_compiled` says so."""
         raw = math.log(math.expm1(init_weight))  # softplus^-1
         self.raw_w_u = nn.Parameter(torch.tensor(raw))
         self.raw_w_p = nn.Parameter(torch.tensor(raw))
@@ -73,31 +73,14 @@ class FloaterScorer(nn.Module):
     def forward(self, pus: Tensor) -> Tensor:
         """m [N] in (0, 1), the probability that each Gaussian is a floater."""
         w1, b1, w2, b2 = self.phi_weights()
-        if self.compiled and cpu_backend.runs_on(pus):
-            return _FloaterMLP.apply(pus.contiguous(), w1[:, 0].contiguous(), b1, w2[0].contiguous(), b2)
+        if use_compiled(self.kernels, pus):
+            return floater_probability(pus.contiguous(), w1[:, 0].contiguous(), b1, w2[0].contiguous(), b2)
         hidden = torch.relu(nn.functional.linear(pus[:, None], w1, b1))
         return torch.sigmoid(nn.functional.linear(hidden, w2, b2))[:, 0]
 
     def weight_penalty(self) -> Tensor:
         """||phi||^2: the squared norm of all of phi's weights (as applied) and biases."""
         return sum(t.square().sum() for t in self.phi_weights())
-
-
-class _FloaterMLP(torch.autograd.Function):
-    """phi and the sigmoid in one compiled pass per Gaussian (csrc/floater_mlp.cpp): the [N, H] hidden layer is
-    never formed. The same numbers as the PyTorch path to float rounding (tests/test_paup.py)."""
-
-    @staticmethod
-    def forward(ctx, x, w1, b1, w2, b2):
-        m = cpu_backend.load_extension().floater_mlp_forward(x, w1, b1, w2, b2)
-        ctx.save_for_backward(x, w1, b1, w2, b2, m)
-        return m
-
-    @staticmethod
-    @once_differentiable
-    def backward(ctx, grad):
-        grads = cpu_backend.load_extension().floater_mlp_backward(*ctx.saved_tensors, grad.contiguous())
-        return tuple(g if needed else None for g, needed in zip(grads, ctx.needs_input_grad, strict=True))
 
 
 def _softplus_inverse(x: Tensor) -> Tensor:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -21,26 +21,26 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig, form_underwater_image
+from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
+from uw3dgs.medium.formation import Water, form_underwater_image, form_with_water
 from uw3dgs.methods.gaussian_splatting import (
     COVERAGE_EPS,
-    DensityControl,
     GaussianSplattingModel,
     GaussianSplattingModelConfig,
     gaussian_optimizers,
 )
-from uw3dgs.metrics.depth_consistency import depth_consistency
+from uw3dgs.methods.uw3dgs.depth_consistency import depth_consistency
+from uw3dgs.methods.uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
+from uw3dgs.methods.uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.options import check_number
-from uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
-from uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import masked_l1, rasterize
 from uw3dgs.render.sh import rgb_to_sh
-from uw3dgs.strategy import DefaultStrategy, DensificationConfig
+from uw3dgs.strategy import DefaultStrategy, DensificationConfig, DensityControl
 from uw3dgs.utils.console import info
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import apply_colormap, depth_to_image
@@ -72,9 +72,6 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     """Gaussian centres drawn per step to estimate L_beta's mean over all centres."""
     depth_loss_weight: float = 0.05
     """Weight of L_z = mean_i (1 - U_i) |z(p_i) - zhat_i| over visible Gaussians, in units of the median depth."""
-    depth_loss_kernel: Literal["compiled", "torch"] = "compiled"
-    """How L_z runs: 'compiled' = one pass of the compiled CPU backend (PyTorch on CUDA or where it does not build);
-    'torch' = PyTorch everywhere (the reference; the same numbers to float rounding, docs/performance.md)."""
     use_paup: bool = True
     """False removes the PAUP branch (the no-paup ablation): no masked render, no L_PAPSL, no pruning by
     uncertainty, U = 0 and PUS = 1 everywhere."""
@@ -99,15 +96,13 @@ class UW3DGSModel(GaussianSplattingModel):
         super().__init__(config, scene, train_indices)
         self.dataset_scale = float(scene.dataset_scale)
         self.train_cameras = [scene.cameras[i] for i in train_indices]
-        self.paup = PAUP(config.paup, self.num_gaussians) if config.use_paup else None
-        self.depth_loss_kernel = config.depth_loss_kernel
-        """How L_z runs (a plain attribute: benchmarks switch it)."""
+        self.paup = PAUP(config.paup, self.num_gaussians, config.kernels) if config.use_paup else None
         self.medium: MediumField | None = None
         self.medium_report: IdentifiabilityReport | None = None
         """The report on the starting estimate (`initialize_from_data`; None: not made, or a loaded run)."""
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
-            self.medium = config.medium.setup(points=scene.points, camera_centers=centers)
+            self.medium = config.medium.setup(points=scene.points, camera_centers=centers, kernels=config.kernels)
             if config.medium.init == "truth" and (scene.gt is None or not scene.gt.medium):
                 raise ValueError("--model.medium.init truth needs a scene that knows its medium (gt/medium.json: "
                                  "the synthetic ones); use 'estimate' or 'prior'")
@@ -200,6 +195,26 @@ class UW3DGSModel(GaussianSplattingModel):
                        beta_d=beta_d, beta_b=beta_b)
         return outputs
 
+    def render_view(self, camera: Camera, water: Water | None = None) -> dict[str, Tensor]:
+        """`Model.render_view`: the evaluation form whatever the mode (no PAUP training branch); with a medium the
+        underwater image formed with `water` as 'rgb', the water-free radiance as 'uri', and the formation's two
+        terms."""
+        if self.medium is None:
+            return super().render_view(camera)
+        out = self.render(camera, depth_weights=self.depth_weights())
+        beta_d, beta_b = self.ray_betas(camera, out["range"])
+        formed = form_with_water(out["radiance"], out["alpha"], out["range"], beta_d, beta_b, self.medium.b_inf,
+                                 self.dataset_scale, water or Water())
+        return {"rgb": formed["uwi"], "uri": out["radiance"], "alpha": out["alpha"], "range": out["range"],
+                "attenuation": formed["attenuation"], "backscatter": formed["backscatter"]}
+
+    def veiling_light(self) -> Tensor | None:
+        return None if self.medium is None else self.medium.b_inf.detach()
+
+    def export_medium(self, dataset_center: tuple[float, float, float], dataset_scale: float,
+                      samples: int) -> dict | None:
+        return None if self.medium is None else self.medium.summary(dataset_center, dataset_scale, samples)
+
     def render_with_paup(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
         """Training render from PAUP's start: `render`'s outputs (the UWI is formed from this full I_UR, as
         evaluation renders it) and 'pus' [N] for L_beta's weights; on the steps of `--model.paup.enhanced-every`
@@ -280,7 +295,7 @@ class UW3DGSModel(GaussianSplattingModel):
         """L_z (uw3dgs/metrics/depth_consistency.py) of this view's render, weighted by PAUP's (1 - U_i) where it
         has them (a scalar)."""
         return depth_consistency(outputs["range"], self.gaussians.means, outputs["means2d"], outputs["radii"],
-                                 camera.center, self.depth_weights(), self.depth_loss_kernel)
+                                 camera.center, self.depth_weights(), self.config.kernels)
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)

@@ -1,4 +1,4 @@
-"""VM field reads as one compiled CPU kernel (`uw3dgs/render/csrc/vm_field.cpp`, built with the CPU rasterizer).
+"""VM field reads as one compiled CPU kernel (`vm_field.cpp`).
 
 `vm_read(u, fields)` is `VMField.forward` (twelve grid_samples, the basis product and the softplus in PyTorch) of
 one or more fields of one shape at the same points, in one pass per point, with a hand-written backward to the
@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels.build import extension
 
 FACTORS = 4
 """A field's factors, in order: planes [3, R, G, G], lines [3, R, G], basis [C, 3R], bias [C]."""
@@ -26,7 +26,7 @@ class _VMRead(torch.autograd.Function):
     @staticmethod
     def forward(ctx, u, *factors):
         planes, lines, basis, bias = (list(factors[i::FACTORS]) for i in range(FACTORS))
-        out, pre = cpu_backend.load_extension().vm_fields_forward(u, planes, lines, basis, bias)
+        out, pre = extension().vm_fields_forward(u, planes, lines, basis, bias)
         ctx.save_for_backward(u, pre, *factors)  # the pre-activations: softplus's derivative without a re-read
         return out
 
@@ -35,7 +35,7 @@ class _VMRead(torch.autograd.Function):
     def backward(ctx, grad_out):
         u, pre, *factors = ctx.saved_tensors
         planes, lines, basis, bias = (list(factors[i::FACTORS]) for i in range(FACTORS))
-        g_u, *g_factors = cpu_backend.load_extension().vm_fields_backward(u, planes, lines, basis, bias, pre,
+        g_u, *g_factors = extension().vm_fields_backward(u, planes, lines, basis, bias, pre,
                                                                          grad_out.contiguous())
         # per field, in the inputs' order: planes, lines, basis, bias
         grads = [g_u[0], *(g for field in zip(*g_factors, strict=True) for g in field)]

@@ -5,6 +5,10 @@
 
 #include <vector>
 
+#ifdef _OPENMP
+#include <omp.h>
+#endif
+
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
                                            int64_t width, int64_t height, double near, double far, double eps2d,
@@ -27,7 +31,13 @@ std::vector<torch::Tensor> masked_l1(torch::Tensor means2d, torch::Tensor conics
                                      torch::Tensor feats, torch::Tensor depths, torch::Tensor radii, int64_t width,
                                      int64_t height, int64_t tile_size, double alpha_min, double alpha_max,
                                      double t_min, std::vector<torch::Tensor> bins_in, torch::Tensor target);
-int num_threads();
+int num_threads() {
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
+#endif
+}
 std::vector<torch::Tensor> vm_fields_forward(torch::Tensor u, std::vector<torch::Tensor> planes,
                                              std::vector<torch::Tensor> lines, std::vector<torch::Tensor> basis,
                                              std::vector<torch::Tensor> bias);

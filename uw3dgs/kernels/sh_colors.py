@@ -1,8 +1,8 @@
-"""The Gaussians' view-dependent colours as one compiled CPU kernel (`csrc/sh_colors.cpp`, built with the CPU
-rasterizer): max(SH(d) + 0.5, 0) with d the unit direction from the camera centre, and the backward to the SH
-coefficients and the means, in one pass per Gaussian. The same numbers as `eval_sh_split` and the clamp in PyTorch
-to float rounding (tests/test_fields.py); `GaussianField.colors` uses it for CPU tensors of float32 or float64 when
-the extension is built, PyTorch elsewhere (the reference, and the path on CUDA)."""
+"""The Gaussians' view-dependent colours as one compiled CPU kernel (`sh_colors.cpp`): max(SH(d) + 0.5, 0) with d
+the unit direction from the camera centre, and the backward to the SH coefficients and the means, in one pass per
+Gaussian. The same numbers as `eval_sh_split` and the clamp in PyTorch to float rounding (tests/test_fields.py);
+`GaussianField.colors` uses it under `--model.kernels compiled` for CPU tensors, PyTorch elsewhere (the reference,
+and the path on CUDA)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels.build import extension
 
 
 class _SHColors(torch.autograd.Function):
@@ -18,13 +18,13 @@ class _SHColors(torch.autograd.Function):
     def forward(ctx, means, center, dc, rest, degree):
         ctx.save_for_backward(means, center, dc, rest)
         ctx.degree = degree
-        return cpu_backend.load_extension().sh_colors_forward(means, center, dc, rest, degree)
+        return extension().sh_colors_forward(means, center, dc, rest, degree)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad):
         means, center, dc, rest = ctx.saved_tensors
-        g_means, g_dc, g_rest = cpu_backend.load_extension().sh_colors_backward(means, center, dc, rest, ctx.degree,
+        g_means, g_dc, g_rest = extension().sh_colors_backward(means, center, dc, rest, ctx.degree,
                                                                                grad.contiguous())
         needs = ctx.needs_input_grad
         return (g_means if needs[0] else None, None, g_dc if needs[2] else None, g_rest if needs[3] else None, None)

@@ -10,8 +10,9 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from uw3dgs.kernels.policy import Kernels
+from uw3dgs.methods.uw3dgs.paup.scorer import FloaterScorer
 from uw3dgs.options import CheckedConfig, check_number
-from uw3dgs.paup.scorer import FloaterScorer
 
 PER_GAUSSIAN_BUFFERS = ("uncertainty", "implausibility", "raw_uncertainty", "measured")
 
@@ -59,12 +60,6 @@ class PAUPConfig(CheckedConfig):
     through either."""
     mask_temperature: float = 0.5
     """Temperature of the "concrete" keep mask (lower: closer to hard 0/1 draws)."""
-    kernel: Literal["compiled", "torch"] = "compiled"
-    """How PAUP's per-step work runs: 'compiled' = phi over all Gaussians as one compiled pass with its backward (no
-    [N, H] hidden layer), and the masked render with its L1 as one compiled pass per tile (`rasterize.masked_l1`),
-    on CPU (PyTorch on CUDA or where the compiled backend does not build); 'torch' = phi in PyTorch and the masked
-    render as a frozen render followed by PyTorch's L1 (the reference; the same numbers to float rounding,
-    docs/performance.md)."""
     loss_weight: float = 0.1
     """Weight of L_PAPSL = L1(I_UR, I_UR^Enh) + keep_penalty mean(1 - m) + mlp_penalty ||phi||^2."""
     keep_penalty: float = 0.01
@@ -106,14 +101,13 @@ class PAUP(nn.Module):
     yet in view of a refresh) scores with the median U and median P of those that have them, and is never
     hard-pruned."""
 
-    def __init__(self, config: PAUPConfig, num_gaussians: int):
+    def __init__(self, config: PAUPConfig, num_gaussians: int, kernels: Kernels = "compiled"):
         super().__init__()
         self.config = config
         self.scorer = FloaterScorer(config.hidden_units, config.init_score_weight, config.init_floater_score,
-                                    config.init_sharpness, config.monotone_scorer, config.kernel == "compiled")
-        self.fused_masked_l1 = config.kernel == "compiled"
-        """The masked render and its L1 in one compiled pass where the backend has it (a plain attribute: benchmarks
-        switch it)."""
+                                    config.init_sharpness, config.monotone_scorer, kernels)
+        self.fused_masked_l1 = kernels == "compiled"
+        """The masked render and its L1 in one compiled pass where the rasterizer backend has it (`kernels`)."""
         self.register_buffer("uncertainty", torch.zeros(num_gaussians))
         self.register_buffer("implausibility", torch.zeros(num_gaussians))
         self.register_buffer("raw_uncertainty", torch.zeros(num_gaussians))

@@ -17,7 +17,9 @@ from rich.console import Console
 from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
-from uw3dgs.datamanagers.synthetic.scene import SyntheticSceneConfig, generate_scene, medium_parameters
+from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
+from uw3dgs.datamanagers.synthetic.rendering import medium_parameters
+from uw3dgs.datamanagers.synthetic.scene import generate_scene
 from uw3dgs.options import check_config, deferred_checks
 from uw3dgs.utils.console import info
 from uw3dgs.utils.io import describe_os_error, unwritable_reason
