@@ -14,8 +14,9 @@ left out, so a neutral grey has chroma 0 as CIELab says):
 - con_l: the contrast of luminance, L at rank floor(0.99 N) minus L at rank floor(0.01 N) of the N sorted pixels;
 - mu_s: the mean saturation C / L (0 where L = 0).
 
-UIQM = 0.0282 UICM + 0.2953 UISM + 3.5753 UIConM, on R, G, B scaled to [0, 255], in the widely used Python
-implementation's form (FUnIE-GAN's `uqim_utils.py`, which most Python-evaluated underwater papers report):
+UIQM = 0.0282 UICM + 0.2953 UISM + 3.5753 UIConM, on R, G, B scaled to [0, 255], in the form of the widely copied
+Python implementation (FUnIE-GAN's `uqim_utils.py`) but with the paper's blue weight 0.114 (docs/underwater-quality.md
+lists the differences):
 - UICM (colourfulness) = -0.0268 sqrt(mu_RG^2 + mu_YB^2) + 0.1586 sqrt(s_RG^2 + s_YB^2) of the opponent colours
   RG = R - G and YB = (R + G) / 2 - B over all pixels; mu is the alpha-trimmed mean (sorted values, the
   ceil(0.1 K) smallest and floor(0.1 K) largest of the K dropped) and s^2 = (1/K) sum (x - mu)^2 over all K.
