@@ -190,7 +190,7 @@ def keep_threads():
 
 
 @pytest.mark.parametrize(("name", "size"), [("sh_eval", "--gaussians"), ("medium_field", "--points"),
-                                            ("adam_fused", "--gaussians")])
+                                            ("adam_fused", "--gaussians"), ("ssim_blur", "--height")])
 def test_speed_scripts_compare_implementations_that_agree(name, size, monkeypatch, capsys, keep_threads):
     monkeypatch.setattr(sys, "argv", [name, size, "300", "--repeats", "1"])
     load_script(name).main()

@@ -14,6 +14,7 @@ from uw3dgs.cli.train import parse_config
 from uw3dgs.config import config_from_dict, config_to_dict
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.medium import HomogeneousMedium, HomogeneousMediumConfig, MediumGridConfig, softplus_inverse
+from uw3dgs.metrics.underwater_quality import uiqm
 from uw3dgs.registry import FIELDS, METHODS, FieldSpec
 
 
@@ -91,8 +92,23 @@ def test_uw3dgs_trains_and_evaluates_with_the_homogeneous_medium(make_config):
     assert isinstance(trainer.model.medium, HomogeneousMedium)
     trainer.train()
     results = run_eval(EvalArgs(load_config=trainer.run_dir / "config.yml", save_renders=False))["results"]
-    for key in ("psnr", "uri_psnr", "b_inf_r", "beta_d_b", "beta_b_g", "beta_d_rel_error"):
+    for key in ("psnr", "uri_psnr", "b_inf_r", "beta_d_b", "beta_b_g", "beta_d_rel_error", "uciqe", "uiqm",
+                "uri_uciqe", "uri_uiqm", "input_uciqe", "input_uiqm", "clean_uciqe", "clean_uiqm"):
         assert key in results and results[key] == results[key], key  # present and not NaN
+    # the no-reference metrics are those of the URI, the UWI, the input and the clean image of each test view
+    model = trainer.model.eval()
+    views = list(trainer.datamanager.test_batches())
+    with torch.no_grad():
+        images = {name: [] for name in ("uri", "", "input", "clean")}
+        for batch in views:
+            outputs = model.get_outputs(batch["camera"])
+            images["uri"].append(outputs["uri"].clamp(0, 1))
+            images[""].append(outputs["rgb"].clamp(0, 1))
+            images["input"].append(batch["image"])
+            images["clean"].append(batch["clean_image"])
+    for name, batch_images in images.items():
+        key = f"{name}_uiqm" if name else "uiqm"
+        assert results[key] == pytest.approx(float(uiqm(torch.stack(batch_images)).mean()), rel=1e-6), key
     # started from the estimate, the one-value medium is near the scene's true (homogeneous) one
     assert results["b_inf_rel_error"] < 0.1 and results["beta_d_rel_error"] < 0.25
     saved = json.loads((trainer.run_dir / "eval" / "results.json").read_text())

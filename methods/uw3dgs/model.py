@@ -36,6 +36,7 @@ from uw3dgs.methods.uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_
 from uw3dgs.methods.uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
+from uw3dgs.metrics.underwater_quality import underwater_quality
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import masked_l1, rasterize
@@ -354,9 +355,14 @@ class UW3DGSModel(GaussianSplattingModel):
         return metrics
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
+        """3DGS's metrics of the UWI ('rgb'), and with a medium the URI's no-reference UCIQE and UIQM (`uri_uciqe`,
+        `uri_uiqm`, on every scene) and, where the scene has clean images, its PSNR, SSIM and LPIPS against them."""
         metrics = super().get_eval_metrics(outputs, batch)
-        if "clean_image" in batch and self.medium is not None:
-            uri = outputs["uri"].detach().clamp(0, 1)
+        if self.medium is None:
+            return metrics
+        uri = outputs["uri"].detach().clamp(0, 1)
+        metrics.update(underwater_quality(uri, prefix="uri_"))
+        if "clean_image" in batch:
             metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
             metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
             metrics.update(lpips_metrics(uri, batch["clean_image"], prefix="uri_"))

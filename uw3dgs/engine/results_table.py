@@ -53,6 +53,14 @@ METRICS: dict[str, Metric] = {m.key: m for m in (
     Metric("uri_lpips_alex", "URI LPIPS", "lower", 3),
     Metric("uri_lpips_vgg", "URI LPIPS-VGG", "lower", 3),
     Metric("uri_psnr_covisible", "URI co-visible PSNR", "higher", 2),
+    Metric("uri_uciqe", "URI UCIQE", "higher", 3),
+    Metric("uri_uiqm", "URI UIQM", "higher", 3),
+    Metric("uciqe", "UCIQE", None, 3),
+    Metric("uiqm", "UIQM", None, 3),
+    Metric("input_uciqe", "input UCIQE", None, 3),
+    Metric("input_uiqm", "input UIQM", None, 3),
+    Metric("clean_uciqe", "clean UCIQE", None, 3),
+    Metric("clean_uiqm", "clean UIQM", None, 3),
     Metric("depth_abs_rel", "depth AbsRel", "lower", 3),
     Metric("floater_ratio", "floater ratio", "lower", 4),
     Metric("floater_ratio_gt", "floater ratio (GT)", "lower", 4),
@@ -68,7 +76,9 @@ METRICS: dict[str, Metric] = {m.key: m for m in (
     Metric("num_test_views", "test views", None, 0),
 )}
 """The direction table: every metric whose best is marked, and which way. Quality (PSNR, SSIM) is better higher;
-errors, LPIPS, floaters, model size (Gaussians) and training time are better lower."""
+errors, LPIPS, floaters, model size (Gaussians) and training time are better lower. The URI's no-reference UCIQE and
+UIQM are higher-better as restoration papers read them; those of the UWI (which should match the input, not beat it),
+the input and the clean image mark no best."""
 
 DEFAULT_METRICS = ("psnr", "ssim", "lpips_alex", "uri_psnr", "floater_ratio", "num_gaussians", TRAIN_MINUTES)
 """The columns without --metrics, each dropped where no run of the table has it."""

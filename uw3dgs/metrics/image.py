@@ -68,7 +68,8 @@ def _gaussian_blur(images: Tensor) -> Tensor:
 
     Equal to 3DGS's 2D F.conv2d(padding=5, groups=C), but as two 1D passes (the window is separable
     and zero padding commutes with it). The channels-last permute is a view, which keeps the
-    depthwise convs on PyTorch's fast channels-last path.
+    depthwise convs on PyTorch's fast channels-last path: kornia's `filter2d_separable` (border 'constant') gives
+    the same numbers (the tests' reference) but several times slower (benchmarks/speed/ssim_blur.py).
     """
     channels = images.shape[-1]
     taps = _gaussian_window(images.dtype, images.device)
@@ -77,6 +78,26 @@ def _gaussian_blur(images: Tensor) -> Tensor:
     horizontal = taps.view(1, 1, 1, -1).expand(channels, 1, 1, -1)
     x = F.conv2d(images.permute(0, 3, 1, 2), vertical, padding=(radius, 0), groups=channels)
     return F.conv2d(x, horizontal, padding=(0, radius), groups=channels)
+
+
+def ssim_map(pred: Tensor, gt: Tensor) -> Tensor:
+    """The SSIM map [B, C, H, W] of images [B, H, W, C] (3DGS's window and constants, per-channel zero-padded
+    'same' filtering): `ssim` before its mean, in PyTorch. Its pixels at least 5 (the window's radius) from every
+    border see no padding: there it is the map of kornia's and scikit-image's SSIM, which pad otherwise."""
+    _check_pair(pred, gt)
+    if pred.ndim != 4:
+        raise ValueError(f"ssim_map takes batched [B, H, W, C] images, got shape {tuple(pred.shape)}")
+    channels = pred.shape[-1]
+    # One blur pass over all five local moments instead of five separate convolutions.
+    moments = _gaussian_blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], dim=-1))
+    mu1, mu2, mean11, mean22, mean12 = moments.split(channels, dim=1)
+    mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    sigma1_sq = mean11 - mu1_sq
+    sigma2_sq = mean22 - mu2_sq
+    sigma12 = mean12 - mu1_mu2
+    return ((2.0 * mu1_mu2 + SSIM_C1) * (2.0 * sigma12 + SSIM_C2)) / (
+        (mu1_sq + mu2_sq + SSIM_C1) * (sigma1_sq + sigma2_sq + SSIM_C2)
+    )
 
 
 def ssim(pred: Tensor, gt: Tensor, kernel: Kernels = "torch") -> Tensor:
@@ -96,18 +117,7 @@ def ssim(pred: Tensor, gt: Tensor, kernel: Kernels = "torch") -> Tensor:
         taps = _gaussian_window(pred.dtype, pred.device)
         per_image = ssim_compiled(pred, gt, taps, SSIM_C1, SSIM_C2)
         return per_image if batched else per_image[0]
-    channels = pred.shape[-1]
-    # One blur pass over all five local moments instead of five separate convolutions.
-    moments = _gaussian_blur(torch.cat([pred, gt, pred * pred, gt * gt, pred * gt], dim=-1))
-    mu1, mu2, mean11, mean22, mean12 = moments.split(channels, dim=1)
-    mu1_sq, mu2_sq, mu1_mu2 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    sigma1_sq = mean11 - mu1_sq
-    sigma2_sq = mean22 - mu2_sq
-    sigma12 = mean12 - mu1_mu2
-    ssim_map = ((2.0 * mu1_mu2 + SSIM_C1) * (2.0 * sigma12 + SSIM_C2)) / (
-        (mu1_sq + mu2_sq + SSIM_C1) * (sigma1_sq + sigma2_sq + SSIM_C2)
-    )
-    per_image = ssim_map.mean(dim=(1, 2, 3))
+    per_image = ssim_map(pred, gt).mean(dim=(1, 2, 3))
     return per_image if batched else per_image[0]
 
 

@@ -18,6 +18,7 @@ from uw3dgs.kernels.policy import Kernels
 from uw3dgs.medium.formation import Water
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
+from uw3dgs.metrics.underwater_quality import underwater_quality
 from uw3dgs.registry import field_spec
 
 
@@ -85,13 +86,18 @@ class Model(nn.Module):
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
         """Per-test-view metrics for evaluation: PSNR, SSIM and LPIPS (alex, vgg) of 'rgb' against the dataset's
-        image, and the PSNR over the pixels training views see where the dataset tells them ('covisible'). A metric
-        a view cannot give is None (reported missing; means are over the views that have it), e.g. LPIPS without
-        its weights installed."""
+        image; the no-reference UCIQE and UIQM of 'rgb' (`uciqe`, `uiqm`), of the dataset's image (`input_uciqe`,
+        `input_uiqm`) and of its clean image where it has one (`clean_uciqe`, `clean_uiqm`); and the PSNR over the
+        pixels training views see where the dataset tells them ('covisible'). A metric a view cannot give is None
+        (reported missing; means are over the views that have it), e.g. LPIPS without its weights installed."""
         pred = outputs["rgb"].detach().clamp(0, 1)
         metrics: dict[str, float | None] = {"psnr": float(psnr(pred, batch["image"])),
                                             "ssim": float(ssim(pred, batch["image"]))}
         metrics.update(lpips_metrics(pred, batch["image"]))
+        metrics.update(underwater_quality(pred))
+        metrics.update(underwater_quality(batch["image"], prefix="input_"))
+        if "clean_image" in batch:
+            metrics.update(underwater_quality(batch["clean_image"], prefix="clean_"))
         if "covisible" in batch:
             metrics["psnr_covisible"] = float(psnr(pred, batch["image"], batch["covisible"]))
             metrics["covisible_share"] = float(batch["covisible"].float().mean())
