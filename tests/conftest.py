@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import re
 from pathlib import Path
 
 import pytest
@@ -85,3 +87,31 @@ def run_command(entrypoint, argv: list[str], capsys) -> tuple[int, str, str]:
         code = int(exit_.code or 0)
     captured = capsys.readouterr()
     return code, captured.out, captured.err
+
+
+TRAINS = re.compile(r"\b(train|train_until_killed|Trainer|trained_run|make_run)\(|\"uw-(train|bench)\"|uw_bench|"
+                    r"webdriver|fresh_venv")
+"""What in a test's own source, or in a fixture it uses, marks it end-to-end: it trains a run, runs a grid, drives a
+browser or builds a venv."""
+
+
+def _is_end_to_end(item: pytest.Item) -> bool:
+    sources = [item.function]
+    for name in getattr(item, "fixturenames", ()):
+        definitions = item._fixtureinfo.name2fixturedefs.get(name, ())
+        sources += [d.func for d in definitions if d.baseid]  # the project's own fixtures, not pytest's
+    for source in sources:
+        try:
+            if TRAINS.search(inspect.getsource(source)):
+                return True
+        except (OSError, TypeError):
+            continue
+    return False
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark end-to-end tests `slow` (see TRAINS): `pytest -m "not slow"` is then the fast unit suite; CI and
+    scripts/test.sh run both."""
+    for item in items:
+        if isinstance(item, pytest.Function) and "slow" not in item.keywords and _is_end_to_end(item):
+            item.add_marker(pytest.mark.slow)
