@@ -1,5 +1,5 @@
 """`uw-export`: the 3DGS PLY layout read back with plyfile (names, order, count, values after the 3DGS activations,
-the dataset frame), the SH layout, medium.json against the model's own medium, and the errors."""
+the dataset frame), the SH layout, the medium JSON against the model's own medium, and the errors."""
 
 from __future__ import annotations
 
@@ -101,8 +101,8 @@ def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):
                                rtol=1e-5)
     i = PROPERTIES.index("scale_0")
     np.testing.assert_allclose(np.exp(rows[:, i:i + 3]), (scales * scene.dataset_scale).detach().numpy(), rtol=1e-5)
-    # medium.json: B_inf and the beta fields of the model, sampled on the grid of its box (dataset frame)
-    assert medium_path == tmp_path / "medium.json"
+    # scene.medium.json: B_inf and the beta fields of the model, sampled on the grid of its box (dataset frame)
+    assert medium_path == tmp_path / "scene.medium.json"
     medium = json.loads(medium_path.read_text())
     assert medium["kind"] == "grid" and medium["shape"] == [3, 3, 3]
     np.testing.assert_allclose(medium["b_inf"], model.medium.b_inf.detach().numpy(), rtol=1e-6)
@@ -117,7 +117,7 @@ def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):
 def test_a_method_without_medium_writes_no_medium_json(make_config, tmp_path):
     run = train(make_config(steps=10)).run_dir
     _, medium, count = run_export(ExportArgs(load_config=run / "config.yml", output=tmp_path / "s.ply"))
-    assert medium is None and not (tmp_path / "medium.json").exists() and count > 0
+    assert medium is None and not list(tmp_path.glob("*.json")) and count > 0
 
 
 def test_errors_name_the_cause_and_the_fix(make_config, tmp_path, capsys):
