@@ -112,6 +112,11 @@ def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):
     beta_d, beta_b = model.medium.betas(torch.stack([box_max, (box_min + box_max) / 2]))
     np.testing.assert_allclose(medium["beta_d"][2][2][2], beta_d[0].detach().numpy(), rtol=1e-5)
     np.testing.assert_allclose(medium["beta_b"][1][1][1], beta_b[1].detach().numpy(), rtol=1e-5)
+    # a second export into the folder keeps the first one's medium: each is named after its PLY
+    before = medium_path.read_bytes()
+    _, other, _ = run_export(ExportArgs(load_config=uw3dgs_run, output=tmp_path / "other.ply", medium_samples=2))
+    assert other == tmp_path / "other.medium.json" and json.loads(other.read_text())["shape"] == [2, 2, 2]
+    assert medium_path.read_bytes() == before
 
 
 def test_a_method_without_medium_writes_no_medium_json(make_config, tmp_path):

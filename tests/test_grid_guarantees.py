@@ -239,7 +239,7 @@ def test_two_uw_bench_processes_on_one_folder(tmp_path, cache_dir):
     first = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 300
     cells = load_grid(grid).cells()
-    while not (cells[0].run_dir / "status.json").is_file():  # the first cell trains
+    while not (cells[0].run_dir / ".uw-train.lock").is_file():  # the first cell trains
         assert first.poll() is None, first.communicate()[0]
         assert time.monotonic() < deadline
         time.sleep(0.05)
@@ -491,9 +491,9 @@ def test_sigterm_to_uw_render_and_uw_viewer_is_a_clean_exit(trained_run, tmp_pat
     config = str(trained_run / "config.yml")
     video = tmp_path / "v.mp4"
     render = subprocess.Popen([sys.executable, "-m", "uw3dgs.cli.render", config, "--path", "spiral",
-                               "--num-frames", "100000", "--output", str(video)], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 120
+                               "--num-frames", "100000", "--max-hours", "1e6", "--output", str(video)], env=env,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + 300
     while not list(tmp_path.glob(".v.mp4.*.tmp")):  # ffmpeg is writing the temporary video
         assert render.poll() is None and time.monotonic() < deadline, render.communicate()[0]
         time.sleep(0.05)

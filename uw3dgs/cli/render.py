@@ -278,11 +278,12 @@ def run_render(args: RenderArgs, progress: bool = True) -> dict[str, Any]:
     if args.downscale > smallest:
         raise ValueError(f"--downscale {args.downscale} leaves no pixel of a {smallest}-pixel side; choose at most "
                          f"{smallest}")
-    # the first frame's camera (the paths but test take the first training view's intrinsics), rendered once to see
-    # what the method renders and how long a frame takes, before the path's cameras are made
+    # the first frame's camera (the paths but test take the first training view's intrinsics), rendered to see what
+    # the method renders and, a second time, how long a frame takes, before the path's cameras are made
     probe_camera = downscale_camera(datamanager.scene.cameras[views[0]], args.downscale).to(device)
+    probe = model.get_outputs(probe_camera)  # the first render may include one-off work (building the rasterizer)
     started = time.perf_counter()
-    probe = model.get_outputs(probe_camera)
+    model.get_outputs(probe_camera)
     seconds = time.perf_counter() - started
     available = [name for name, spec in OUTPUTS.items() if spec.key in probe]
     names = requested or [name for name in DEFAULT_OUTPUTS if name in available]
