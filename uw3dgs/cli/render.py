@@ -187,6 +187,15 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:,.1f} h"
 
 
+def path_views(path: str, datamanager: Any) -> list[int]:
+    """The dataset views a path starts from: the test views for `test`, else the training views."""
+    indices = datamanager.test_indices if path == "test" else datamanager.train_indices
+    if not indices:
+        raise ValueError("--path test: the run has no test views (trained with --datamanager.llffhold 0); use "
+                         "--path train")
+    return indices
+
+
 def path_cameras(path: str, datamanager: Any, frames_per_view: int, num_frames: int) -> tuple[list[Camera], list[str]]:
     """The cameras of `path` (see RenderArgs.path) and each frame's PNG file name, relative to --images: the dataset
     image's name with the suffix .png for test/train (subfolders kept), frame_<00000>.png for the others."""
@@ -194,10 +203,7 @@ def path_cameras(path: str, datamanager: Any, frames_per_view: int, num_frames: 
 
     scene = datamanager.scene
     if path in ("test", "train"):
-        indices = datamanager.test_indices if path == "test" else datamanager.train_indices
-        if not indices:
-            raise ValueError("--path test: the run has no test views (trained with --datamanager.llffhold 0); use "
-                             "--path train")
+        indices = path_views(path, datamanager)
         files = [str(Path(scene.image_names[i]).with_suffix(".png")) for i in indices]
         if len(set(files)) < len(files):
             raise ValueError(f"--path {path}: two images of the dataset differ only in their suffix, so their PNGs "
@@ -273,7 +279,7 @@ def run_render(args: RenderArgs, progress: bool = True) -> dict[str, Any]:
     device = resolve_device(args.device)
     config, datamanager, model, _ = load_trained(args.load_config, device, step=args.step)
     model.eval()
-    views = datamanager.test_indices if args.path == "test" else datamanager.train_indices
+    views = path_views(args.path, datamanager)
     smallest = min(min(datamanager.scene.cameras[i].width, datamanager.scene.cameras[i].height) for i in views)
     if args.downscale > smallest:
         raise ValueError(f"--downscale {args.downscale} leaves no pixel of a {smallest}-pixel side; choose at most "
