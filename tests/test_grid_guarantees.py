@@ -237,16 +237,16 @@ def test_two_uw_bench_processes_on_one_folder(tmp_path, cache_dir):
     env = {**os.environ, "UW3DGS_CACHE": str(cache_dir), "OMP_WAIT_POLICY": "passive"}
     command = [sys.executable, "-m", "uw3dgs.cli.bench", str(grid)]
     first = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 300
+    deadline = time.monotonic() + 900  # a busy machine builds the compiled kernels slowly
     cells = load_grid(grid).cells()
     while not (cells[0].run_dir / ".uw-train.lock").is_file():  # the first cell trains
         assert first.poll() is None, first.communicate()[0]
         assert time.monotonic() < deadline
         time.sleep(0.05)
-    second = subprocess.run(command, env=env, capture_output=True, text=True, timeout=300)
+    second = subprocess.run(command, env=env, capture_output=True, text=True, timeout=600)
     assert second.returncode == 2, second.stdout + second.stderr
     assert f"{out} is in use by another uw-bench (pid {first.pid} on" in second.stdout
-    output, _ = first.communicate(timeout=600)
+    output, _ = first.communicate(timeout=1800)
     assert first.returncode == 0, output
     for cell in cells:
         assert (cell.run_dir / "bench.log").read_text().count("uw3dgs.cli.train") == 1
@@ -493,7 +493,7 @@ def test_sigterm_to_uw_render_and_uw_viewer_is_a_clean_exit(trained_run, tmp_pat
     render = subprocess.Popen([sys.executable, "-m", "uw3dgs.cli.render", config, "--path", "spiral",
                                "--num-frames", "100000", "--max-hours", "1e6", "--output", str(video)], env=env,
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 300
+    deadline = time.monotonic() + 900
     while not list(tmp_path.glob(".v.mp4.*.tmp")):  # ffmpeg is writing the temporary video
         assert render.poll() is None and time.monotonic() < deadline, render.communicate()[0]
         time.sleep(0.05)
