@@ -31,10 +31,10 @@ from uw3dgs.cli.eval import TableArgs, recorded_train_time, run_table
 from uw3dgs.cli.eval import entrypoint as uw_eval
 from uw3dgs.cli.export import entrypoint as uw_export
 from uw3dgs.cli.render import entrypoint as uw_render
-from uw3dgs.cli.synth import entrypoint as uw_synth
 from uw3dgs.cli.train import entrypoint as uw_train
 from uw3dgs.cli.viewer import entrypoint as uw_viewer
 from uw3dgs.config import config_to_dict, load_config
+from uw3dgs.datamanagers.synthetic.cli import entrypoint as uw_synth
 from uw3dgs.engine.checkpoint import list_checkpoints, load_checkpoint
 from uw3dgs.engine.run_folder import RunFolderError, RunLock
 from uw3dgs.engine.trainer import TRAIN_TIME_FILE
