@@ -70,8 +70,8 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
             write_marine_snow(out_dir / "gt" / "marine_snow.json", snows)
         write_views(out_dir, views)
         write_colmap_model(out_dir / "sparse" / "0", K, config, c2w, xyz, rgb)
-        z_bounds = np.stack([z_bounds(v, k) for k, v in enumerate(views)])
-        np.save(out_dir / "poses_bounds.npy", llff_poses_bounds(c2w, K, config, z_bounds))
+        bounds = np.stack([z_bounds(v, k) for k, v in enumerate(views)])
+        np.save(out_dir / "poses_bounds.npy", llff_poses_bounds(c2w, K, config, bounds))
         write_medium(out_dir / "gt" / "medium.json", config, medium)
         bar.advance(task)
     return out_dir
