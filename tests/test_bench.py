@@ -80,7 +80,7 @@ variants: {plain: [], att: [--model.paup.attenuation-weight, 1]}
     ("methods: [3dgs]\ndatasets: {s: {path: x}}\nseeds: [0]\n", "dataset 's' must be a mapping with keys"),
     ("methods: [3dgs]\ndatasets: {a/b: {}}\nseeds: [0]\n", "must be one folder name"),
     ("methods: [3dgs]\ndatasets: {s: {}}\nseeds: [0]\nargs: {steps: 3}\n", "must be a list of uw-train flags"),
-    ("methods: [3dgs\n", "is not valid YAML"),
+    ("methods: [3dgs\n", "not valid plain YAML"),
 ])
 def test_a_bad_grid_file_names_the_file_and_the_fix(tmp_path, text, needle):
     path = write(tmp_path / "g.yaml", text)

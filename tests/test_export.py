@@ -1,5 +1,5 @@
 """`uw-export`: the 3DGS PLY layout read back with plyfile (names, order, count, values after the 3DGS activations,
-the dataset frame), the SH layout, medium.json against the model's own medium, and the errors."""
+the dataset frame), the SH layout, the medium JSON against the model's own medium, and the errors."""
 
 from __future__ import annotations
 
@@ -101,8 +101,8 @@ def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):
                                rtol=1e-5)
     i = PROPERTIES.index("scale_0")
     np.testing.assert_allclose(np.exp(rows[:, i:i + 3]), (scales * scene.dataset_scale).detach().numpy(), rtol=1e-5)
-    # medium.json: B_inf and the beta fields of the model, sampled on the grid of its box (dataset frame)
-    assert medium_path == tmp_path / "medium.json"
+    # scene.medium.json: B_inf and the beta fields of the model, sampled on the grid of its box (dataset frame)
+    assert medium_path == tmp_path / "scene.medium.json"
     medium = json.loads(medium_path.read_text())
     assert medium["kind"] == "grid" and medium["shape"] == [3, 3, 3]
     np.testing.assert_allclose(medium["b_inf"], model.medium.b_inf.detach().numpy(), rtol=1e-6)
@@ -112,12 +112,17 @@ def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):
     beta_d, beta_b = model.medium.betas(torch.stack([box_max, (box_min + box_max) / 2]))
     np.testing.assert_allclose(medium["beta_d"][2][2][2], beta_d[0].detach().numpy(), rtol=1e-5)
     np.testing.assert_allclose(medium["beta_b"][1][1][1], beta_b[1].detach().numpy(), rtol=1e-5)
+    # a second export into the folder keeps the first one's medium: each is named after its PLY
+    before = medium_path.read_bytes()
+    _, other, _ = run_export(ExportArgs(load_config=uw3dgs_run, output=tmp_path / "other.ply", medium_samples=2))
+    assert other == tmp_path / "other.medium.json" and json.loads(other.read_text())["shape"] == [2, 2, 2]
+    assert medium_path.read_bytes() == before
 
 
 def test_a_method_without_medium_writes_no_medium_json(make_config, tmp_path):
     run = train(make_config(steps=10)).run_dir
     _, medium, count = run_export(ExportArgs(load_config=run / "config.yml", output=tmp_path / "s.ply"))
-    assert medium is None and not (tmp_path / "medium.json").exists() and count > 0
+    assert medium is None and not list(tmp_path.glob("*.json")) and count > 0
 
 
 def test_errors_name_the_cause_and_the_fix(make_config, tmp_path, capsys):

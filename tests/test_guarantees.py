@@ -336,7 +336,7 @@ def test_a_nan_row_in_poses_bounds_names_the_file_and_the_row(tmp_path, cache_di
     ("progress: false", "progress: 0", "progress: expected true or false, got 0"),
     ("max_num_iterations: 10", "max_num_iterations: -3",
      r"max_num_iterations must be a whole number >= 1, got -3 \(the option --max-num-iterations\)"),
-    ("seed: 0", "seed: !!python/object/apply:os.system [ls]", r"not a plain YAML config \(line \d+\)"),
+    ("seed: 0", "seed: !!python/object/apply:os.system [ls]", r"not valid plain YAML \(line \d+\)"),
 ])
 def test_a_hand_edited_config_names_the_key_the_type_and_the_file(trained_run, tmp_path, old, new, message):
     text = (trained_run / "config.yml").read_text()

@@ -24,6 +24,7 @@ import yaml
 
 from uw3dgs.options import CheckedConfig, OptionError, check_config, deferred_checks
 from uw3dgs.utils.io import write_text
+from uw3dgs.utils.safe_yaml import load_yaml
 
 Target = tyro.conf.Suppress[Callable[..., Any]]
 """Annotation of `_target` (a class or a factory taking the config first): not a command-line option."""
@@ -290,15 +291,9 @@ def load_config(path: Path) -> Any:
         raise FileNotFoundError(f"config file {path} does not exist; pass the config.yml of a run folder "
                                 "(outputs/<scene>/<method>/<timestamp>/config.yml)")
     try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ValueError(f"{path}: not a plain YAML config{where}: {problem}; configs hold plain values only (no "
-                         "Python tags): fix that line") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: cannot be read ({err})") from err
+        data = load_yaml(path)
+    except OSError as err:
+        raise ValueError(f"{path}: cannot be read ({err.strerror or err})") from err
     if not isinstance(data, dict) or "_type" not in data:
         raise ValueError(f"{path} is not a uw3dgs config (no '_type' key at the top)")
     try:

@@ -18,6 +18,7 @@ from rich.progress import Progress
 from uw3dgs.datamanagers.synthetic.cameras import camera_poses, check_cameras, focus_area, intrinsics
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.datamanagers.synthetic.marine_snow import add_marine_snow, marine_snow_particles, write_marine_snow
+from uw3dgs.datamanagers.synthetic.memory import check_memory
 from uw3dgs.datamanagers.synthetic.points import sample_points
 from uw3dgs.datamanagers.synthetic.rendering import medium_parameters, render_view
 from uw3dgs.datamanagers.synthetic.terrain import build_terrain
@@ -41,6 +42,7 @@ def generate_scene(config: SyntheticSceneConfig, out_dir: Path, progress: bool =
     if out_dir.exists() and any(out_dir.iterdir()):
         # Never mix with (or delete) what is there: stale views of another scene would corrupt this one.
         raise ValueError(f"{out_dir} is not empty; write the scene to a new or empty folder")
+    check_memory(config)  # before anything is allocated
     seeds = np.random.SeedSequence(config.seed).spawn(4)  # independent streams: poses, terrain, points, snow
     pose_rng, terrain_rng, point_rng, snow_rng = (np.random.default_rng(s) for s in seeds)
     K = intrinsics(config)

@@ -24,12 +24,18 @@ from typing import Any
 from uw3dgs.bench.grid import Cell
 from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.results_table import RESULTS, read_results, stale_results
-from uw3dgs.engine.run_folder import flatten, holds_a_run
+from uw3dgs.engine.run_folder import RunFolderError, RunLock, flatten, holds_a_run, lock_holder
+from uw3dgs.utils.io import describe_os_error
+from uw3dgs.utils.safe_yaml import load_yaml
 
 LOG_NAME = "bench.log"
 """The cell's uw-train and uw-eval output, appended run after run, in its run folder."""
-IGNORED_OPTIONS = {"timestamp", "load_config", "resume", "progress", "device", "viewer", "viewer_port", "viewer_host"}
-"""Options that may differ between the grid's command line and the run folder's config.yml of the same cell."""
+IGNORED_OPTIONS = {"timestamp", "load_config", "resume", "progress", "device", "viewer", "viewer_port", "viewer_host",
+                   "output_dir"}
+"""Options that may differ between the grid's command line and the run folder's config.yml of the same cell; the
+output_dir is where the folder was first written: a grid folder moved or copied elsewhere resumes where it is now."""
+KEEP_ADVICE = ("move that folder aside (uw-bench never deletes a run) to run the cell with the grid's settings, or "
+               "give the grid another output_dir")
 
 
 class State(str, Enum):
@@ -87,22 +93,27 @@ def config_differences(saved: dict[str, Any], expected: dict[str, Any]) -> list[
 def cell_state(cell: Cell, check_config: bool = True) -> tuple[State, str]:
     """What is left to do for the cell, and why; `check_config`: compare the folder's config.yml with the cell's
     options (a conflict where they differ)."""
-    import yaml
-
     run = cell.run_dir
+    holder = lock_holder(run)
+    if holder is not None:
+        return State.CONFLICT, (f"{run} is in use by another training ({holder}); let it end, or stop it and run "
+                                "uw-bench again")
     if not holds_a_run(run):
         return State.NEW, "not started"
     config_file = run / "config.yml"
     if not config_file.is_file():
-        return State.CONFLICT, (f"{run} holds checkpoints but no config.yml (not a run uw-train wrote); move or "
-                                "delete that folder")
-    saved = yaml.safe_load(config_file.read_text()) or {}
+        return State.CONFLICT, f"{run} holds checkpoints but no config.yml (not a run uw-train wrote); {KEEP_ADVICE}"
+    try:
+        saved = load_yaml(config_file) or {}
+    except (OSError, ValueError) as exc:
+        return State.CONFLICT, f"{exc if isinstance(exc, ValueError) else describe_os_error(exc)}; {KEEP_ADVICE}"
+    if not isinstance(saved, dict):
+        return State.CONFLICT, f"{config_file} is not a uw3dgs config (not a mapping); {KEEP_ADVICE}"
     if check_config:
         differences = config_differences(saved, expected_config(cell))
         if differences:
             shown = "; ".join(differences[:4]) + (f"; ... ({len(differences)} in all)" if len(differences) > 4 else "")
-            return State.CONFLICT, (f"{run} holds a run made with other settings: {shown}. Move or delete that folder "
-                                    "to run the cell with the grid's settings, or give the grid another output_dir")
+            return State.CONFLICT, f"{run} holds a run made with other settings: {shown}; {KEEP_ADVICE}"
     checkpoint = latest_checkpoint(run)
     if checkpoint is None:
         return State.RESTART, "stopped before its first checkpoint"
@@ -174,9 +185,15 @@ def _log_tail(log: Path, lines: int = 3) -> str:
 
 def _move_aside(run: Path) -> Path:
     """A folder with a config.yml and no checkpoint holds nothing to resume; it is kept, hidden (`uw-eval table`
-    does not search folders starting with a dot), under a new name."""
+    does not search folders starting with a dot), under a new name. Moved with its run lock held by this process,
+    so a training that holds it (started meanwhile) is never moved: RunFolderError naming it."""
     target = run.with_name(f".{run.name}.restarted-{time.strftime('%Y%m%d-%H%M%S')}")
-    run.rename(target)
+    lock = RunLock(run)
+    lock.acquire()
+    try:
+        run.rename(target)
+    finally:
+        lock.release()
     return target
 
 
@@ -194,7 +211,10 @@ def run_cell(cell: Cell, threads: int, python: str = sys.executable) -> Outcome:
     done = {State.NEW: "trained and evaluated", State.RESUME: f"resumed {why}, trained and evaluated",
             State.EVALUATE: f"evaluated ({why})"}.get(state)
     if state is State.RESTART:
-        done = f"{why}, trained again and evaluated (the old folder is {_move_aside(cell.run_dir)})"
+        try:
+            done = f"{why}, trained again and evaluated (the old folder is {_move_aside(cell.run_dir)})"
+        except RunFolderError as exc:
+            return Outcome(cell, "conflict", str(exc))
     if state in (State.NEW, State.RESTART, State.RESUME):
         command = [python, "-m", "uw3dgs.cli.train", *cell.argv]
         if state is State.RESUME:

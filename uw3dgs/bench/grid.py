@@ -26,7 +26,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-import yaml
+from uw3dgs.utils.safe_yaml import YamlFileError, load_yaml
 
 GRID_KEYS = {"output_dir", "data_root", "methods", "datasets", "seeds", "args", "variants", "metrics"}
 DATASET_KEYS = {"data", "datamanager", "args"}
@@ -146,9 +146,22 @@ def _names(value: Any, key: str, path: Path, kind: type) -> tuple:
     return tuple(value)
 
 
+def _seeds(value: Any, path: Path) -> tuple[int, ...]:
+    from uw3dgs.engine.config import SEED_LIMIT
+
+    seeds = _names(value, "seeds", path, int)
+    bad = [s for s in seeds if not 0 <= s < SEED_LIMIT]
+    if bad:
+        raise GridError(f"{path}: `seeds`: {bad[0]} is not a 64-bit seed; give whole numbers from 0 to 2**64 - 1")
+    return seeds
+
+
 def _folder_name(name: Any, key: str, path: Path) -> str:
     if not isinstance(name, str) or name in ("", ".", "..") or "/" in name or "\\" in name:
         raise GridError(f"{path}: {key} name {name!r} must be one folder name (no '/', not empty, '.' or '..')")
+    if name.startswith("."):  # hidden folders are where uw-bench keeps runs it moved aside: uw-eval table skips them
+        raise GridError(f"{path}: {key} name {name!r} starts with a dot (a hidden folder, which uw-eval table does "
+                        f"not search); rename it, e.g. {name.lstrip('.') or 'data'!r}")
     return name
 
 
@@ -192,12 +205,12 @@ def load_grid(path: Path, data_root: Path | None = None, output_dir: Path | None
     path a user types."""
     path = find_grid(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = load_yaml(path)
     except FileNotFoundError:
         raise FileNotFoundError(f"{path} does not exist; give a grid file, or the name of a preset: "
                                 f"{', '.join(preset_names())}") from None
-    except yaml.YAMLError as exc:
-        raise GridError(f"{path} is not valid YAML: {exc}") from None
+    except YamlFileError as exc:
+        raise GridError(str(exc)) from None
     if not isinstance(raw, dict):
         raise GridError(f"{path} must be a YAML mapping with keys {sorted(GRID_KEYS)}")
     unknown = set(raw) - GRID_KEYS
@@ -224,7 +237,7 @@ def load_grid(path: Path, data_root: Path | None = None, output_dir: Path | None
         output_dir=Path(os.path.expanduser(str(out))),
         methods=tuple(_folder_name(m, "method", path) for m in _names(raw["methods"], "methods", path, str)),
         datasets=tuple(_dataset(k, v, root, path) for k, v in datasets.items()),
-        seeds=_names(raw["seeds"], "seeds", path, int),
+        seeds=_seeds(raw["seeds"], path),
         args=_flags(raw.get("args"), "`args`", path),
         variants=variants or {"": ()},
         metrics=None if metrics is None else _names(metrics, "metrics", path, str),

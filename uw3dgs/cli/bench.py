@@ -47,14 +47,13 @@ class BenchArgs:
     """Write the table at the end (--no-table: only run the cells)."""
 
 
-def plan(args: BenchArgs):
-    """The grid, its cells, and each cell's state. Every cell's options are checked here (uw-train's own parser,
-    once per dataset x method x variant: the seed changes nothing else), so a typo stops the grid before any run
-    starts, not hours into it."""
+def plan(args: BenchArgs, grid):
+    """The grid's cells and each cell's state. Every cell's options are checked here (uw-train's own parser, once
+    per dataset x method x variant: the seed changes nothing else), so a typo stops the grid before any run starts,
+    not hours into it."""
     from uw3dgs.bench.cell import cell_state, expected_config
-    from uw3dgs.bench.grid import GridError, load_grid
+    from uw3dgs.bench.grid import GridError
 
-    grid = load_grid(args.grid, args.data_root, args.output_dir)
     cells = grid.cells()
     checked = set()
     states = []
@@ -69,7 +68,7 @@ def plan(args: BenchArgs):
                             f"uw-train {' '.join(cell.argv)}") from exc
         except (ValueError, FileNotFoundError) as exc:
             raise GridError(f"{args.grid}: cell {cell.name}: {exc}") from exc
-    return grid, cells, states
+    return cells, states
 
 
 def write_table(grid, outcomes, print_to=sys.stdout) -> None:
@@ -89,8 +88,8 @@ def write_table(grid, outcomes, print_to=sys.stdout) -> None:
     if dropped:
         warn(f"metrics: no run has {', '.join(dropped)}; column(s) dropped")
     table = rt.build_table(runs, metrics)
-    for mismatch in rt.steps_mismatch(table):
-        warn(f"runs averaged over different training lengths: {mismatch}")
+    for note in table.notes:
+        warn(note)
     texts = {fmt: rt.render(table, fmt) for fmt in TABLE_FORMATS}
     if missing:
         texts["md"] += "\nNot in the table:\n\n" + "".join(f"- {line}\n" for line in missing)
@@ -102,13 +101,29 @@ def write_table(grid, outcomes, print_to=sys.stdout) -> None:
 
 
 def run_bench(args: BenchArgs) -> int:
-    """Run the grid; the exit status: 0 when every cell is done, 1 otherwise (the table shows what is done)."""
+    """Run the grid; the exit status: 0 when every cell is done, 1 otherwise (the table shows what is done). The
+    grid's output folder is locked for the whole run (a --dry-run only reads it)."""
+    from uw3dgs.bench.grid import load_grid
+    from uw3dgs.bench.lock import grid_lock
+
+    grid = load_grid(args.grid, args.data_root, args.output_dir)
+    if args.dry_run:
+        return _run_locked(args, grid)
+    lock = grid_lock(grid.output_dir)
+    lock.acquire()
+    try:
+        return _run_locked(args, grid)
+    finally:
+        lock.release()
+
+
+def _run_locked(args: BenchArgs, grid) -> int:
     from uw3dgs.bench.cell import Outcome, State
     from uw3dgs.bench.executors import available_cores, local_threads, run_local, run_ray
     from uw3dgs.bench.view import GridView
     from uw3dgs.engine.results_table import read_results
 
-    grid, cells, states = plan(args)
+    cells, states = plan(args, grid)
     counts = {s: sum(1 for state, _ in states if state is s) for s in State}
     info(f"{args.grid}: {len(cells)} cells in {grid.output_dir}: "
          + ", ".join(f"{n} {s.value}" for s, n in counts.items() if n))

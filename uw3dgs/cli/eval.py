@@ -35,19 +35,21 @@ class EvalArgs:
 
 
 def recorded_train_time(run_dir: Path, checkpoint: Path) -> tuple[float | None, int | None]:
-    """(train_seconds, train_steps) of a checkpoint: the seconds uw-train recorded up to its step (RUN/train_time.json,
-    else the checkpoint itself), None where the run predates the record; the step from the checkpoint's name."""
+    """(train_seconds, train_steps) of a checkpoint: the seconds uw-train recorded up to its step (RUN/train_time.json;
+    where that file is unreadable or lacks the step, the checkpoint itself), None where the run predates the record;
+    the step from the checkpoint's name."""
     from uw3dgs.engine.checkpoint import load_checkpoint
     from uw3dgs.engine.trainer import read_train_time
 
     name = checkpoint.name.removeprefix("step-").removesuffix(".ckpt")
     step = int(name) if name.isdigit() else None
     record = read_train_time(run_dir)
-    if record is None or step is None:  # a run from before the record: nothing to copy, nothing made up
+    if step is None:
         return None, step
-    if str(step) in record["checkpoints"]:
-        seconds = record["checkpoints"][str(step)]
-    else:  # killed between writing the checkpoint and the record: the checkpoint holds it
+    seconds = None if record is None else record["checkpoints"].get(str(step))
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)):
+        # killed between the checkpoint and the record, or the record damaged: the checkpoint holds it (a run from
+        # before the record has it in neither: nothing made up)
         seconds = load_checkpoint(checkpoint, "cpu").get("train_seconds")
     return (float(seconds) if isinstance(seconds, (int, float)) else None), step
 
@@ -62,6 +64,7 @@ def run_notes(run_dir: Path) -> dict[str, object]:
 
 def run_eval(args: EvalArgs, progress: bool = True) -> dict:
     from uw3dgs.engine.evaluator import evaluate_views, load_trained
+    from uw3dgs.engine.run_identity import DATA_KEY, data_record
     from uw3dgs.engine.trainer import resolve_device
     from uw3dgs.utils.io import unwritable_reason, write_json
 
@@ -85,7 +88,8 @@ def run_eval(args: EvalArgs, progress: bool = True) -> dict:
                "num_test_views": len(datamanager.test_indices), "train_seconds": train_seconds,
                "train_steps": train_steps}
     data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
-            "checkpoint": str(checkpoint), "results": summary, "per_image": result["per_image"],
+            "checkpoint": str(checkpoint), "results": summary, DATA_KEY: data_record(config, datamanager),
+            "per_image": result["per_image"],
             "notes": run_notes(Path(args.load_config).parent)}
     write_json(output, data)
     data["output_path"] = str(output)
@@ -195,8 +199,8 @@ def run_table(args: TableArgs) -> str:
         raise ValueError(f"none of the metrics asked for is in these runs; they have: "
                          f"{', '.join(rt.available_metrics(runs))}")
     table = rt.build_table(runs, metrics)
-    for mismatch in rt.steps_mismatch(table):
-        warn(f"runs averaged over different training lengths: {mismatch}")
+    for note in table.notes:
+        warn(note)
     return rt.render(table, args.format)
 
 

@@ -1,6 +1,6 @@
 """`uw-export RUN/config.yml --output scene.ply`: the trained Gaussians in the 3DGS PLY layout, in the dataset's own
-frame (the water-free scene other 3DGS viewers load), and the learned medium as `medium.json` beside it
-(docs/export.md)."""
+frame (the water-free scene other 3DGS viewers load), and the learned medium as `scene.medium.json` beside it (named
+after the PLY, so two exports into one folder keep their own medium; docs/export.md)."""
 
 from __future__ import annotations
 
@@ -24,20 +24,26 @@ class ExportArgs:
     format: Literal["ply"] = "ply"
     """The layout: ply (the 3DGS reference code's; docs/export.md)."""
     medium_output: Path | None = None
-    """Where the learned medium goes (methods with a medium); default medium.json beside --output."""
+    """Where the learned medium goes (methods with a medium); default beside --output, named after it
+    (scene.ply -> scene.medium.json)."""
     medium_samples: int = 16
     """Grid points per axis at which a grid medium's beta_D and beta_B are written."""
     step: int | None = None
     """Export the checkpoint of this step (one the run kept) instead of the latest."""
 
 
+def medium_path_for(ply: Path) -> Path:
+    """The default medium file of a PLY: beside it, named after it (scene.ply -> scene.medium.json)."""
+    return ply.with_suffix(".medium.json")
+
+
 def run_export(args: ExportArgs) -> tuple[Path, Path | None, int]:
-    """Write the PLY (and medium.json); returns (PLY path, medium path or None, Gaussians written)."""
+    """Write the PLY (and its medium JSON); returns (PLY path, medium path or None, Gaussians written)."""
     from uw3dgs.engine.evaluator import load_trained
     from uw3dgs.export.ply import gaussian_rows, write_ply
     from uw3dgs.utils.io import unwritable_reason, write_json
 
-    medium_path = args.medium_output or args.output.with_name("medium.json")
+    medium_path = args.medium_output or medium_path_for(args.output)
     for option, path in (("--output", args.output), ("--medium-output", medium_path)):
         problem = unwritable_reason(path)
         if problem is not None:  # before the run is loaded
@@ -67,7 +73,7 @@ def entrypoint(argv: list[str] | None = None) -> None:
                                 "JSON.")
     ply, medium, count = report_user_errors(lambda: run_export(args))
     info(f"{count:,} Gaussians written to {ply}" + (f"; the medium to {medium}" if medium else
-                                                     " (the method has no medium: no medium.json)"))
+                                                     " (the method has no medium: no medium file)"))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,8 @@ See docs/render.md.
 from __future__ import annotations
 
 import contextlib
+import math
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -55,6 +57,9 @@ OUTPUTS: dict[str, Output] = {
 }
 DEFAULT_OUTPUTS = ("uwi", "uri", "depth")
 
+MIN_FPS, MAX_FPS = 0.01, 1000.0
+"""The frame rates an .mp4 of uw-render may have (ffmpeg's time base cannot hold a rate near 0)."""
+
 DEPTH_RANGE_SAMPLES = 5
 """Frames, spread evenly along the path, whose rendered ranges fix the depth colour scale of the whole render."""
 
@@ -82,7 +87,7 @@ class RenderArgs:
     num_frames: int = 120
     """--path spiral: frames of the whole spiral."""
     fps: float = 24.0
-    """Frames per second of the video."""
+    """Frames per second of the video, from 0.01 (a slide show) to 1000."""
     crf: int = 18
     """x264's constant rate factor: 0 lossless, 18 visually lossless, 23 ffmpeg's default, 51 worst."""
     downscale: int = 1
@@ -93,6 +98,9 @@ class RenderArgs:
     """Render the checkpoint of this step (one the run kept) instead of the latest."""
     device: str = "auto"
     """Where to render: auto (CUDA when PyTorch sees a GPU, else the CPU), cpu, cuda."""
+    max_hours: float = 24.0
+    """Refuse a render estimated (before it starts: the frames times the first frame's render time) to take longer
+    than this; raise it for a long render."""
 
 
 def parse_outputs(text: str | None) -> list[str] | None:
@@ -120,8 +128,10 @@ def check_args(args: RenderArgs) -> tuple[Path | None, Path | None]:
             raise ValueError(f"{option} must be at least 1, got {value}")
     if not 0 <= args.crf <= 51:
         raise ValueError(f"--crf must be between 0 and 51, got {args.crf}")
-    if not args.fps > 0:
-        raise ValueError(f"--fps must be positive, got {args.fps}")
+    if not (math.isfinite(args.fps) and MIN_FPS <= args.fps <= MAX_FPS):
+        raise ValueError(f"--fps must be between {MIN_FPS:g} and {MAX_FPS:g} frames per second, got {args.fps}")
+    if not (math.isfinite(args.max_hours) and args.max_hours > 0):
+        raise ValueError(f"--max-hours must be a positive number of hours, got {args.max_hours}")
     parse_outputs(args.outputs)
     output = args.output
     if output is None and args.images is None:
@@ -136,6 +146,56 @@ def check_args(args: RenderArgs) -> tuple[Path | None, Path | None]:
     return output, args.images
 
 
+def frame_count(path: str, datamanager: Any, frames_per_view: int, num_frames: int) -> int:
+    """How many frames `path_cameras` makes, known before they are made."""
+    if path in ("test", "train"):
+        return len(datamanager.test_indices if path == "test" else datamanager.train_indices)
+    if path == "interpolate":
+        return (len(datamanager.train_indices) - 1) * frames_per_view + 1
+    return num_frames
+
+
+def check_cost(frames: int, seconds_per_frame: float, frame_bytes: int, images_dir: Path | None,
+               max_hours: float) -> str:
+    """What the render will cost, said before it starts ('N frames: about T, PNGs up to B'); ValueError naming the
+    options when it would take more than `max_hours` or its PNG frames (at most `frame_bytes` each, uncompressed)
+    would not fit on the disk of `images_dir`."""
+    hours = frames * seconds_per_frame / 3600
+    cost = f"{frames:,} frame(s): about {_duration(hours * 3600)} ({seconds_per_frame:.3f} s per frame)"
+    if hours > max_hours:
+        raise ValueError(f"{cost}, more than --max-hours {max_hours:g}; render fewer frames (--num-frames, "
+                         "--frames-per-view) or a smaller image (--downscale), or raise --max-hours")
+    if images_dir is not None:
+        need = frames * frame_bytes
+        folder = images_dir
+        while not folder.exists() and folder != folder.parent:
+            folder = folder.parent
+        free = shutil.disk_usage(folder).free
+        if need > free:
+            raise ValueError(f"{cost}: their PNGs may need up to {need / 2**30:.1f} GiB and {folder} has "
+                             f"{free / 2**30:.1f} GiB free; render fewer frames or a smaller image (--downscale), or "
+                             "free some space")
+        cost += f", PNGs up to {need / 2**20:,.0f} MiB"
+    return cost
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:,.1f} h"
+
+
+def path_views(path: str, datamanager: Any) -> list[int]:
+    """The dataset views a path starts from: the test views for `test`, else the training views."""
+    indices = datamanager.test_indices if path == "test" else datamanager.train_indices
+    if not indices:
+        raise ValueError("--path test: the run has no test views (trained with --datamanager.llffhold 0); use "
+                         "--path train")
+    return indices
+
+
 def path_cameras(path: str, datamanager: Any, frames_per_view: int, num_frames: int) -> tuple[list[Camera], list[str]]:
     """The cameras of `path` (see RenderArgs.path) and each frame's PNG file name, relative to --images: the dataset
     image's name with the suffix .png for test/train (subfolders kept), frame_<00000>.png for the others."""
@@ -143,10 +203,7 @@ def path_cameras(path: str, datamanager: Any, frames_per_view: int, num_frames: 
 
     scene = datamanager.scene
     if path in ("test", "train"):
-        indices = datamanager.test_indices if path == "test" else datamanager.train_indices
-        if not indices:
-            raise ValueError("--path test: the run has no test views (trained with --datamanager.llffhold 0); use "
-                             "--path train")
+        indices = path_views(path, datamanager)
         files = [str(Path(scene.image_names[i]).with_suffix(".png")) for i in indices]
         if len(set(files)) < len(files):
             raise ValueError(f"--path {path}: two images of the dataset differ only in their suffix, so their PNGs "
@@ -213,6 +270,7 @@ def run_render(args: RenderArgs, progress: bool = True) -> dict[str, Any]:
     padding to even sides), the outputs shown, the video and image folder written (None where not), seconds."""
     from uw3dgs.data.downscale import downscale_camera
     from uw3dgs.engine.evaluator import load_trained
+    from uw3dgs.engine.signals import sigterm_as_interrupt
     from uw3dgs.engine.trainer import resolve_device
     from uw3dgs.utils.video import Mp4Writer, labelled_row
 
@@ -221,25 +279,38 @@ def run_render(args: RenderArgs, progress: bool = True) -> dict[str, Any]:
     device = resolve_device(args.device)
     config, datamanager, model, _ = load_trained(args.load_config, device, step=args.step)
     model.eval()
-    cameras, files = path_cameras(args.path, datamanager, args.frames_per_view, args.num_frames)
-    smallest = min(min(camera.width, camera.height) for camera in cameras)
+    views = path_views(args.path, datamanager)
+    smallest = min(min(datamanager.scene.cameras[i].width, datamanager.scene.cameras[i].height) for i in views)
     if args.downscale > smallest:
         raise ValueError(f"--downscale {args.downscale} leaves no pixel of a {smallest}-pixel side; choose at most "
                          f"{smallest}")
-    cameras = [downscale_camera(camera, args.downscale) for camera in cameras]
-    probe = model.get_outputs(cameras[0].to(device))
+    # the first frame's camera (the paths but test take the first training view's intrinsics), rendered to see what
+    # the method renders and, a second time, how long a frame takes, before the path's cameras are made
+    probe_camera = downscale_camera(datamanager.scene.cameras[views[0]], args.downscale).to(device)
+    probe = model.get_outputs(probe_camera)  # the first render may include one-off work (building the rasterizer)
+    started = time.perf_counter()
+    model.get_outputs(probe_camera)
+    seconds = time.perf_counter() - started
     available = [name for name, spec in OUTPUTS.items() if spec.key in probe]
     names = requested or [name for name in DEFAULT_OUTPUTS if name in available]
     missing = [name for name in names if name not in available]
     if missing:
         raise ValueError(f"--outputs: a {config.method_name} run renders no {', '.join(missing)}; it can render "
                          f"{', '.join(available)}")
-    scale = depth_scale(model, cameras, device) if "depth" in names else None
     labels = [OUTPUTS[name].label for name in names] if args.labels == "always" or (
         args.labels == "auto" and len(names) > 1) else None
+    blank = labelled_row([torch.zeros(probe_camera.height, probe_camera.width, 3)] * len(names), labels)
+    # a PNG is at most its pixels, a filter byte per row and zlib's stored-block overhead (5 bytes per 16 KiB) more
+    frame_bytes = blank.nbytes + blank.shape[0] + blank.nbytes // 3000 + 1024
+    info(check_cost(frame_count(args.path, datamanager, args.frames_per_view, args.num_frames), seconds,
+                    frame_bytes, images_dir, args.max_hours))
+    cameras, files = path_cameras(args.path, datamanager, args.frames_per_view, args.num_frames)
+    cameras = [downscale_camera(camera, args.downscale) for camera in cameras]
+    scale = depth_scale(model, cameras, device) if "depth" in names else None
     start = time.perf_counter()
     size = None
     with contextlib.ExitStack() as stack:
+        stack.enter_context(sigterm_as_interrupt())  # after loading (pycolmap installs its own SIGTERM handler)
         video = None if output is None else stack.enter_context(Mp4Writer(output, args.fps, args.crf))
         for camera, file in track(list(zip(cameras, files, strict=True)), description="render", console=CONSOLE,
                                   disable=not progress):
@@ -259,9 +330,9 @@ def entrypoint(argv: list[str] | None = None) -> None:
     args = tyro.cli(RenderArgs, args=argv, prog="uw-render", description=__doc__)
     try:
         result = report_user_errors(lambda: run_render(args))  # OSError: e.g. the disk filling up
-    except KeyboardInterrupt:
-        Console().print("Interrupted.")
-        sys.exit(130)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the unfinished video's temporary file is removed
+        Console().print("Interrupted: no video written." if args.output or args.images is None else "Interrupted.")
+        sys.exit(getattr(exc, "exit_code", 130))
     n, seconds = result["frames"], result["seconds"]
     info(f"rendered {n} frame(s) of {result['size'][0]}x{result['size'][1]} ({', '.join(result['outputs'])}) in "
          f"{seconds:.1f} s ({seconds / n:.3f} s per frame)")

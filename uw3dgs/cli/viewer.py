@@ -57,11 +57,14 @@ def entrypoint(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     route_warnings()
     args = tyro.cli(ViewerArgs, args=argv, prog="uw-viewer", description=__doc__)
+    from uw3dgs.engine.signals import sigterm_as_interrupt
+
     viewer = report_user_errors(lambda: start_viewer(args))
     Console().print(f"viewer at {viewer.url} (Ctrl-C to stop)", soft_wrap=True, highlight=False)
     try:
-        viewer.serve_forever()
-    except KeyboardInterrupt:
+        with sigterm_as_interrupt():  # after loading the run (pycolmap installs its own SIGTERM handler)
+            viewer.serve_forever()
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the usual ways to stop a server
         Console().print("Stopped.")
     finally:
         viewer.stop()

@@ -3,10 +3,11 @@ that a model's parameters are finite (the Trainer runs it before every checkpoin
 
 from __future__ import annotations
 
+import pickle
 import re
 from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import torch
 
@@ -48,11 +49,37 @@ def checkpoint_step(path: Path) -> int:
     return int(match.group(1))
 
 
+class _RecordedWrites:
+    """A file for `torch.save` that keeps the OSError of a failed write (a full disk): torch's serialiser turns it
+    into an internal message ('[enforce fail at inline_container.cc] unexpected pos'), which says nothing."""
+
+    def __init__(self, file: IO[bytes]):
+        self.file = file
+        self.error: OSError | None = None
+
+    def write(self, data: bytes) -> int:
+        try:
+            return self.file.write(data)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+    def flush(self) -> None:
+        self.file.flush()
+
+
 def save_checkpoint(run_dir: Path, step: int, state: dict[str, Any], keep: int) -> Path:
-    """Write `state` for `step`; a run killed mid-write leaves the previous checkpoints intact."""
+    """Write `state` for `step`; a run killed mid-write leaves the previous checkpoints intact. A failed write is
+    the OSError of the file system (e.g. 'No space left on device'), named with the checkpoint's path."""
     path = checkpoint_path(run_dir, step)
     with atomic_file(path, "wb", fsync=True) as f:
-        torch.save(state, f)
+        recorded = _RecordedWrites(f)
+        try:
+            torch.save(state, recorded)
+        except RuntimeError:
+            if recorded.error is None:
+                raise
+            raise OSError(recorded.error.errno, recorded.error.strerror, str(path)) from recorded.error
     for old in list_checkpoints(run_dir)[:-keep] if keep > 0 else []:
         old.unlink(missing_ok=True)
     return path
@@ -72,9 +99,45 @@ def latest_checkpoint(run_dir: Path) -> Path | None:
     return found[-1] if found else None
 
 
-def load_checkpoint(path: Path, device: torch.device | str = "cpu") -> dict[str, Any]:
+MODEL_KEYS = ("model",)
+"""What a checkpoint must hold to be evaluated, exported, rendered or viewed."""
+RESUME_KEYS = ("step", "model", "optimizers", "callbacks", "datamanager", "rng")
+"""What it must hold to be resumed (`Trainer.checkpoint_state`)."""
+
+
+def _load_failure(exc: BaseException) -> str:
+    """Why torch.load failed, in one line, without PyTorch's advice to load the file unsafely."""
+    text = str(exc)
+    found = re.search(r"Unsupported global: GLOBAL (\S+)", text)
+    if found:
+        return (f"it holds a Python object ({found.group(1).rstrip('.')}) that the safe loader refuses; uw-train's "
+                "checkpoints hold tensors and plain values only, so it was written by another tool or altered")
+    if isinstance(exc, pickle.UnpicklingError):
+        found = re.search(r"WeightsUnpickler error:\s*([^\n]+)", text)
+        return f"the safe loader refuses it ({found.group(1).strip() if found else 'not a tensor file'})"
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return re.sub(r"^\[enforce fail at [^]]*\]\s*\.?\s*", "", lines[0] if lines else type(exc).__name__)
+
+
+def load_checkpoint(path: Path, device: torch.device | str = "cpu",
+                    required: tuple[str, ...] = MODEL_KEYS) -> dict[str, Any]:
+    """The checkpoint's state (tensors and plain values only: PyTorch's safe loader), holding at least `required`
+    (its `model` a mapping of tensors); RuntimeError in one line, naming the file, for anything else."""
+    path = Path(path)
     try:
-        return torch.load(path, map_location=device, weights_only=True)
+        state = torch.load(path, map_location=device, weights_only=True)
+    except OSError as exc:
+        raise RuntimeError(f"checkpoint {path} cannot be read ({exc.strerror or exc})") from exc
     except Exception as exc:
-        raise RuntimeError(f"checkpoint {path} cannot be read ({exc}); delete it to fall back to the "
-                           "previous one") from exc
+        raise RuntimeError(f"checkpoint {path} cannot be read: {_load_failure(exc)}; use another of the run's "
+                           "checkpoints (--step), or pass the config.yml of the run that wrote it") from None
+    missing = [key for key in required if not isinstance(state, dict) or key not in state]
+    model = state.get("model") if isinstance(state, dict) else None
+    if missing or ("model" in required and not (isinstance(model, dict) and model
+                                                and all(isinstance(v, torch.Tensor) for v in model.values()))):
+        what = f"a {type(state).__name__}" if not isinstance(state, dict) else \
+            f"keys {sorted(map(str, state))[:6] or 'none'}"
+        raise RuntimeError(f"checkpoint {path} is not a uw3dgs checkpoint (it holds {what}; a uw-train checkpoint "
+                           f"holds {', '.join(required)}): it was written by another tool; use a checkpoint uw-train "
+                           "wrote, or pass the config.yml of the run that wrote it")
+    return state

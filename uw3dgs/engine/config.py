@@ -16,6 +16,9 @@ from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.models.base import ModelConfig
 from uw3dgs.options import CheckedConfig, OptionError, check_number
 
+SEED_LIMIT = 2**64
+"""Seeds are below this: torch's generators take 64-bit seeds."""
+
 
 def datamanager_choices() -> type:
     """The datamanager subcommands: 'auto' plus every registered datamanager (entry points included)."""
@@ -85,6 +88,8 @@ class TrainConfig(CheckedConfig):
                      "steps_per_eval_all_images", "keep_checkpoints", "downscale_factor"):
             check_number(self, name, ge=1, integer=True)
         check_number(self, "viewer_port", ge=1, le=65535, integer=True)
+        if not (isinstance(self.seed, int) and 0 <= self.seed < SEED_LIMIT):  # what torch's generators take
+            raise OptionError("seed", f"must be a whole number from 0 to 2**64 - 1, got {self.seed}")
         for name in ("timestamp", "experiment_name"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, str) or value in ("", ".", "..") or "/" in value

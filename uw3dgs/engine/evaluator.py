@@ -20,6 +20,7 @@ from uw3dgs.engine.checkpoint import (
     nonfinite,
 )
 from uw3dgs.engine.config import TrainConfig
+from uw3dgs.engine.run_folder import state_problems
 from uw3dgs.models.base import Model
 from uw3dgs.utils.images import write_image
 from uw3dgs.utils.visualize import image_grid
@@ -85,6 +86,12 @@ def load_trained(config_path: Path, device: torch.device | str = "cpu",
                                            device=device, seed=config.seed)
     model = config.model.setup(scene=datamanager.scene, train_indices=datamanager.train_indices)
     state = load_checkpoint(checkpoint, "cpu")
+    problems, _ = state_problems(model, state["model"])
+    if problems:  # another method's (or another model size's) parameters: PyTorch's message is many lines
+        shown = "; ".join(problems[:3]) + (f"; ... ({len(problems)} in all)" if len(problems) > 3 else "")
+        raise ValueError(f"{checkpoint} does not hold the parameters of this run's {config.method_name} model "
+                         f"[{shown}]: it was written by another method, tool or settings; pass the config.yml of the "
+                         "run that wrote it")
     model.load_checkpoint_state(state["model"])
     bad = nonfinite(model.state_dict())
     if bad:  # uw3dgs never writes such a checkpoint; one from elsewhere (or an older version) is refused

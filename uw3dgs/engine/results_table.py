@@ -13,6 +13,7 @@ Evaluating the runs that have no results is the command's business (`uw3dgs/cli/
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import json
 import math
@@ -23,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from uw3dgs.engine.checkpoint import latest_checkpoint
+from uw3dgs.engine.run_identity import DATA_KEY, Identity, data_differences, identity_of
 
 RESULTS = Path("eval") / "results.json"
 """Where `uw-eval RUN/config.yml` writes a run's metrics, relative to the run folder."""
@@ -97,6 +99,11 @@ class Run:
     scene: str
     method: str
     values: dict[str, float]
+    """Numbers and infinities; a result that is neither (text, NaN) is in `unreadable`."""
+    identity: Identity = Identity(None, None, None, None, None, None)
+    """What it was trained and tested on (`run_identity`): runs are averaged only where it agrees."""
+    unreadable: dict[str, str] = field(default_factory=dict)
+    """Results that are not numbers: key -> the value as written; shown as missing, with a note."""
 
 
 @dataclass(frozen=True)
@@ -124,6 +131,8 @@ class ResultsTable:
     groups: dict[tuple[str, str], Group]
     best: set[tuple[str, str, str]]
     """(scene, method, metric key) of the best mean of every scene's column."""
+    notes: list[str] = field(default_factory=list)
+    """What the reader must know: runs shown apart because their data or lengths differ, unreadable results."""
 
 
 # ---- finding and reading runs ----------------------------------------------------------------------------------------
@@ -172,24 +181,38 @@ def stale_results(run_dir: Path, data: dict[str, Any]) -> str | None:
     they evaluated is not the run's latest (a run without checkpoints keeps its results)."""
     latest = latest_checkpoint(Path(run_dir))
     evaluated = Path(str(data.get("checkpoint", ""))).name
-    if latest is None or evaluated == latest.name:
+    if latest is None:
         return None
-    return f"{Path(run_dir) / RESULTS} is of {evaluated or 'an unknown checkpoint'}, the run's latest is {latest.name}"
+    if evaluated != latest.name:
+        return f"{Path(run_dir) / RESULTS} is of {evaluated or 'an unknown checkpoint'}, the run's latest is " \
+               f"{latest.name}"
+    if DATA_KEY not in data:
+        return f"{Path(run_dir) / RESULTS} does not record the data it was evaluated on (an older uw-eval)"
+    return None
 
 
 def _number(value: Any) -> float | None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    """A result as a number (an infinity included); None for text, null, NaN."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
         return None
     return float(value)
 
 
 def run_from_results(run_dir: Path, data: dict[str, Any]) -> Run:
-    """A Run from uw-eval's JSON: every finite number of `results`, plus `train_minutes` where `train_seconds` is
-    known (null, absent: the run predates the record, and the value is missing, never made up)."""
-    values = {k: v for k, v in ((k, _number(v)) for k, v in data["results"].items()) if v is not None}
+    """A Run from uw-eval's JSON: every number of `results` (infinities too), plus `train_minutes` where
+    `train_seconds` is known (null, absent: the run predates the record, and the value is missing, never made up);
+    other values (text, NaN) are kept apart as unreadable, to be shown missing with a note."""
+    values, unreadable = {}, {}
+    for key, value in data["results"].items():
+        number = _number(value)
+        if number is not None:
+            values[key] = number
+        elif value is not None:
+            unreadable[key] = repr(value)
     if "train_seconds" in values:
         values[TRAIN_MINUTES] = values["train_seconds"] / 60.0
-    return Run(Path(run_dir), str(data.get("experiment_name") or "?"), str(data["method_name"]), values)
+    return Run(Path(run_dir), str(data.get("experiment_name") or "?"), str(data["method_name"]), values,
+               identity_of(data), unreadable)
 
 
 # ---- the table -------------------------------------------------------------------------------------------------------
@@ -217,7 +240,7 @@ def select_metrics(runs: Sequence[Run], requested: Sequence[str] | None) -> tupl
     ones that are known but no run has (dropped; the default columns are dropped silently). ValueError for a
     requested key that is neither in the direction table nor in any run, naming the available ones."""
     available = available_metrics(runs)
-    present = {k for run in runs for k in run.values}
+    present = {k for run in runs for k in (*run.values, *run.unreadable)}
     if requested is None:
         return [metric(k) for k in DEFAULT_METRICS if k in present], []
     unknown = [k for k in requested if k not in METRICS and k not in present]
@@ -228,7 +251,41 @@ def select_metrics(runs: Sequence[Run], requested: Sequence[str] | None) -> tupl
 
 
 def _cell(values: list[float]) -> Cell:
+    """Mean and sample std of the values; with an infinity among them the mean is that infinity (or NaN for both
+    signs) and there is no std."""
+    if not all(math.isfinite(v) for v in values):
+        return Cell(math.fsum(values), None, len(values))
     return Cell(statistics.fmean(values), statistics.stdev(values) if len(values) > 1 else None, len(values))
+
+
+def separate_experiments(runs: Sequence[Run]) -> tuple[list[Run], list[str]]:
+    """The runs relabelled so that a (scene, method) group holds only runs of one experiment: a scene whose runs
+    differ in their data (path, content, downscale, resolution, split) becomes one column group per data, named
+    after what differs ('IUI3-RedSea [downscale 8]'); a method whose runs of one scene trained for different
+    numbers of steps becomes one row per length ('3dgs [2000 steps]'). Also the notes saying so."""
+    notes = []
+    out = list(runs)
+    for scene in dict.fromkeys(run.scene for run in out):
+        mine = [i for i, run in enumerate(out) if run.scene == scene]
+        labels = data_differences([out[i].identity for i in mine])
+        if len(labels) > 1:
+            for i in mine:
+                out[i] = dataclasses.replace(out[i], scene=f"{scene} [{labels[out[i].identity.data()]}]")
+            notes.append(f"{scene}: its runs were trained on different data ({'; '.join(labels.values())}); each is "
+                         "a column group of its own")
+    for scene, method in dict.fromkeys((run.scene, run.method) for run in out):
+        mine = [i for i, run in enumerate(out) if (run.scene, run.method) == (scene, method)]
+        steps = list(dict.fromkeys(out[i].identity.steps for i in mine))
+        if len(steps) > 1:
+            for i in mine:
+                length = out[i].identity.steps
+                out[i] = dataclasses.replace(out[i], method=f"{method} [{'?' if length is None else length} steps]")
+            notes.append(f"{scene} / {method}: runs of different lengths "
+                         f"({', '.join('?' if s is None else str(s) for s in steps)} steps) are rows of their own")
+    for run in out:
+        for key, value in run.unreadable.items():
+            notes.append(f"{run.path}: {key} is {value}, not a number: shown as missing")
+    return out, notes
 
 
 def _rounded(m: Metric, value: float) -> float:
@@ -238,7 +295,9 @@ def _rounded(m: Metric, value: float) -> float:
 def build_table(runs: Sequence[Run], metrics: Sequence[Metric]) -> ResultsTable:
     """Group the runs by (scene, method), average every metric over each group's runs, and mark the best mean of
     every scene's column: the highest or lowest as the direction table says, compared as shown (rounded), ties all
-    marked, and only where at least two methods of that scene have the metric."""
+    marked, and only where at least two methods of that scene have the metric. Runs of different data or lengths
+    are never averaged (`separate_experiments`)."""
+    runs, notes = separate_experiments(runs)
     groups: dict[tuple[str, str], Group] = {}
     for run in runs:
         groups.setdefault((run.scene, run.method), Group(run.scene, run.method)).runs.append(run)
@@ -260,17 +319,7 @@ def build_table(runs: Sequence[Run], metrics: Sequence[Metric]) -> ResultsTable:
                 continue
             target = max(means.values()) if m.better == "higher" else min(means.values())
             best |= {(scene, method, m.key) for method, value in means.items() if value == target}
-    return ResultsTable(list(metrics), scenes, methods, groups, best)
-
-
-def steps_mismatch(table: ResultsTable) -> list[str]:
-    """Groups whose runs stopped at different steps (averaged anyway), as 'scene / method: steps 2000, 6000'."""
-    found = []
-    for (scene, method), group in sorted(table.groups.items()):
-        steps = sorted({int(run.values["train_steps"]) for run in group.runs if "train_steps" in run.values})
-        if len(steps) > 1:
-            found.append(f"{scene} / {method}: steps {', '.join(str(s) for s in steps)}")
-    return found
+    return ResultsTable(list(metrics), scenes, methods, groups, best, notes)
 
 
 # ---- rendering -------------------------------------------------------------------------------------------------------
@@ -390,7 +439,14 @@ def to_json(table: ResultsTable) -> str:
 
 
 def render(table: ResultsTable, fmt: Format) -> str:
+    """The table in `fmt`; its notes (`ResultsTable.notes`) follow a Markdown table as a list and a LaTeX one as
+    comments (CSV and JSON hold the numbers only)."""
     renderers = {"md": to_markdown, "tex": to_latex, "csv": to_csv, "json": to_json}
     if fmt not in renderers:
         raise ValueError(f"--format {fmt}: one of {', '.join(FORMATS)}")
-    return renderers[fmt](table)
+    text = renderers[fmt](table)
+    if table.notes and fmt == "md":
+        text += "\nNotes:\n\n" + "".join(f"- {note}\n" for note in table.notes)
+    elif table.notes and fmt == "tex":
+        text += "".join(f"% note: {note}\n" for note in table.notes)
+    return text

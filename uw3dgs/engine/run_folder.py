@@ -12,17 +12,18 @@ from __future__ import annotations
 
 import os
 import socket
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 
 from uw3dgs.config import config_to_dict
 from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, list_checkpoints
 from uw3dgs.utils.console import warn
 from uw3dgs.utils.io import describe_os_error, remove_temp_files
+from uw3dgs.utils.safe_yaml import load_yaml
 
 try:
     import fcntl
@@ -41,12 +42,20 @@ class RunFolderError(RuntimeError):
     """The run folder cannot be used by this run (another process holds it, or it holds another run)."""
 
 
-class RunLock:
-    """An exclusive lock on a run folder, for the whole training (one process per run folder)."""
+def _training_refusal(folder: Path, holder: str) -> str:
+    return (f"{folder} is in use by another training ({holder}); wait for it to end or stop it, or train into "
+            "another --timestamp")
 
-    def __init__(self, run_dir: Path):
+
+class RunLock:
+    """An exclusive lock on a run folder, for the whole training (one process per run folder); with another `name`
+    and `refusal` (the message naming the folder and the holder) the lock of another kind of folder (a grid's)."""
+
+    def __init__(self, run_dir: Path, name: str = LOCK_NAME,
+                 refusal: Callable[[Path, str], str] = _training_refusal):
         self.run_dir = Path(run_dir)
-        self.path = self.run_dir / LOCK_NAME
+        self.path = self.run_dir / name
+        self.refusal = refusal
         self._file = None
 
     def acquire(self) -> None:
@@ -67,8 +76,7 @@ class RunLock:
             handle.close()
             if holder.startswith(f"pid {os.getpid()} on {socket.gethostname()},"):  # a notebook, a test
                 holder += ": an earlier Trainer of this process, whose train() has not ended; call its close()"
-            raise RunFolderError(f"{self.run_dir} is in use by another training ({holder}); wait for it to end or "
-                                 "stop it, or train into another --timestamp") from None
+            raise RunFolderError(self.refusal(self.run_dir, holder)) from None
         except OSError as exc:  # a file system without flock (some network mounts): train unlocked
             warn(f"cannot lock {self.path} ({exc.strerror}); two trainings into this folder would not be stopped")
         handle.seek(0)
@@ -85,6 +93,25 @@ class RunLock:
     @property
     def held(self) -> bool:
         return self._file is not None
+
+
+def lock_holder(folder: Path, name: str = LOCK_NAME) -> str | None:
+    """Who holds the lock `name` of `folder` ('pid N on HOST, since ...'), or None where no process holds it (no lock
+    file, or a lock its process left when it ended)."""
+    if fcntl is None:
+        return None
+    try:
+        handle = open(Path(folder) / name)  # noqa: SIM115 (closed below, which drops a lock taken here)
+    except OSError:
+        return None
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return handle.read().strip() or "a process that has not written its pid yet"
+        except OSError:  # a file system without flock: nothing can be known
+            return None
+    return None
 
 
 def holds_a_run(run_dir: Path) -> bool:
@@ -148,15 +175,11 @@ def _shape(t: torch.Tensor, free_first: bool) -> str:
     return "[" + ", ".join(dims) + "]"
 
 
-def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoint: Path) -> str | None:
-    """Why `model` (built from `new_config`) cannot resume from checkpoint `state`, or None if it can.
-
-    Compared: the state_dict keys and every tensor's shape (the first dimension of the tensors density control
-    resizes, `model.state_keys_resized_in_training()`, is free) and the names of the parameter groups (the
-    optimizers' states). The message names the options that differ from the checkpoint's config: those under the
-    mismatching part of the model (`model.gaussians.*` for `gaussians.shN`, with the selector that chose it, e.g.
-    `--model.medium-field`), else every model option that differs."""
-    saved, now = state["model"], model.state_dict()
+def state_problems(model: Any, saved: dict[str, torch.Tensor]) -> tuple[list[str], list[str]]:
+    """What `model` would not take from the saved state_dict `saved`: the keys only in one of them and the tensors
+    of other shapes (the first dimension of those density control resizes is free), as 'key ...' texts; and the
+    top-level parts of the model (e.g. 'gaussians') they belong to."""
+    now = model.state_dict()
     free = set(model.state_keys_resized_in_training())
     problems, parts = [], []
     for key in dict.fromkeys([*saved, *now]):
@@ -169,6 +192,18 @@ def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoin
                 continue
             problems.append(f"{key} {_shape(a, key in free)} in the checkpoint, {_shape(b, key in free)} now")
         parts.append(key.split(".")[0])
+    return problems, parts
+
+
+def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoint: Path) -> str | None:
+    """Why `model` (built from `new_config`) cannot resume from checkpoint `state`, or None if it can.
+
+    Compared: the state_dict keys and every tensor's shape (the first dimension of the tensors density control
+    resizes, `model.state_keys_resized_in_training()`, is free) and the names of the parameter groups (the
+    optimizers' states). The message names the options that differ from the checkpoint's config: those under the
+    mismatching part of the model (`model.gaussians.*` for `gaussians.shN`, with the selector that chose it, e.g.
+    `--model.medium-field`), else every model option that differs."""
+    problems, parts = state_problems(model, state["model"])
     groups_saved, groups_now = set(state.get("optimizers", {})), set(model.param_groups())
     if groups_saved != groups_now:
         problems.append(f"parameter groups {sorted(groups_saved)} in the checkpoint, {sorted(groups_now)} now")
@@ -177,8 +212,8 @@ def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoin
     saved_config = state.get("config")
     if not isinstance(saved_config, dict):  # a checkpoint without its config: the run folder's config.yml
         try:
-            saved_config = yaml.safe_load((checkpoint.parent.parent / "config.yml").read_text())
-        except (OSError, yaml.YAMLError):
+            saved_config = load_yaml(checkpoint.parent.parent / "config.yml")
+        except (OSError, ValueError):
             saved_config = {}
     changed = _changed_model_options(saved_config if isinstance(saved_config, dict) else {},
                                      config_to_dict(new_config))

@@ -1,11 +1,14 @@
-"""Stopping a training run on a signal: SIGINT (Ctrl-C) or SIGTERM (what cluster schedulers send) ends the run
-after the current step, with that step's checkpoint, instead of in the middle of one."""
+"""Stopping on a signal: SIGINT (Ctrl-C) or SIGTERM (what cluster schedulers send) ends a training run after the
+current step, with that step's checkpoint, instead of in the middle of one (`StopRequests`); the other long-running
+commands (uw-render, uw-viewer) take SIGTERM as Ctrl-C (`sigterm_as_interrupt`): a clean exit, no temporary file."""
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import sys
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,3 +53,30 @@ class StopRequests:
                 sys.stderr.flush()
             except (RuntimeError, OSError, ValueError):
                 pass
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like Ctrl-C's KeyboardInterrupt (so every `with` block and `finally` cleans up: temporary
+    files removed, servers stopped); a command exits with 143 (128 + SIGTERM)."""
+
+    exit_code = 128 + signal.SIGTERM
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Inside: SIGTERM raises `Terminated` in the main thread instead of killing the process (whose native handlers,
+    e.g. the one pycolmap's logging installs when imported, dump a stack and leave temporary files). Enter it after
+    the imports that install such handlers; the previous handler is restored on exit. Does nothing outside the main
+    thread, where no handler can be installed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)

@@ -21,6 +21,7 @@ from uw3dgs.config import config_to_dict, save_config
 from uw3dgs.data.datamanager import AutoDataManagerConfig, DataManager
 from uw3dgs.engine.checkpoint import (
     CHECKPOINT_DIR,
+    RESUME_KEYS,
     checkpoint_path,
     latest_checkpoint,
     load_checkpoint,
@@ -189,7 +190,7 @@ class Trainer:
                                     "before its first save); start it again without --resume under another "
                                     f"--timestamp, or after deleting {self.run_dir}")
         self._resumed_from = path
-        return load_checkpoint(path, "cpu")
+        return load_checkpoint(path, "cpu", required=RESUME_KEYS)
 
     def _restore(self, checkpoint: dict[str, Any]) -> None:
         self.optimizers.load_state_dict(checkpoint["optimizers"])

@@ -28,7 +28,8 @@ from typing import IO, Any
 def atomic_file(path: str | os.PathLike, mode: str = "wb", fsync: bool = False) -> Iterator[IO[Any]]:
     """Open a temporary file beside `path` for writing (`mode` 'w' or 'wb'); on a clean exit it replaces
     `path` in one rename, on an exception it is removed and `path` is untouched. The parent folder is
-    created. `fsync=True` flushes the data to disk before the rename (checkpoints: survive a power cut).
+    created. `fsync=True` flushes the data to disk before the rename (checkpoints: survive a power cut). An OSError
+    that names no file (a write to a full disk) is raised again naming `path`.
     The temp file is opened with plain `open`, so it gets the umask's permissions like any other file."""
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_file writes whole files: mode 'w' or 'wb', got {mode!r}")
@@ -42,6 +43,11 @@ def atomic_file(path: str | os.PathLike, mode: str = "wb", fsync: bool = False) 
                 f.flush()
                 os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        if exc.filename is None:  # a failed write (a full disk) names no file: name the one being written
+            raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

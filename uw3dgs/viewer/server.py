@@ -61,7 +61,10 @@ def require_viser() -> None:
 
 def check_port(host: str, port: int, option: str = "--port") -> None:
     """Raise `ViewerPortError` (one line: cause and fix) when `port` on `host` cannot be bound. viser itself would
-    silently move to the next free port, and the URL the user typed would show something else."""
+    silently move to the next free port, and the URL the user typed would show something else; port 0 (the OS's
+    choice) is refused for the same reason."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 1 <= port <= 65535:
+        raise ViewerPortError(f"{option} {port} is not a port; give one from 1 to 65535, e.g. {option} 7007")
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
         # as the server binds (asyncio): a port a closed server left in TIME_WAIT is free, a listening one is not
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
