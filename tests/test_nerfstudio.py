@@ -186,4 +186,5 @@ def test_uw_train_trains_on_a_transforms_json_folder(tmp_path):
     first = trainer.eval_all(0)["psnr"]
     trainer.train()
     last = trainer.eval_all(TRAIN_STEPS)["psnr"]
-    assert last > first + 5.0, (first, last)
+    # wrong poses (a convention mixed up) start far lower and do not learn the views
+    assert last > 25.0 and last > first + 2.0, (first, last)
