@@ -98,7 +98,7 @@ class MediumFieldConfig(InstantiateConfig):
     of the scene), prints it and keeps it in the run folder (`notes/medium_report.json`) and in uw-eval's JSON."""
     identifiability: IdentifiabilityConfig = field(default_factory=IdentifiabilityConfig)
     """The report's thresholds."""
-    no_water_level: float = 0.2
+    no_water_level: float = 0.25
     """'estimate' judges whether there is water at all (fields/water_verdict.py): little or no water when the
     optical depths beta_D*z and beta_B*z at the far end of the ranges stay below this in every channel (the water
     then changes no pixel by more than about this share)."""

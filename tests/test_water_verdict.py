@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -12,9 +13,11 @@ from conftest import run_command
 
 from uw3dgs.cli.eval import entrypoint as uw_eval
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
+from uw3dgs.engine.evaluator import PANEL_LABELS, evaluate_views
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.water_verdict import far_range, water_verdict
 from uw3dgs.methods.uw3dgs import method as uw3dgs_method
+from uw3dgs.utils.images import read_image
 
 
 def test_verdict_is_optical_depth_against_a_level():
@@ -56,7 +59,7 @@ def test_a_scene_without_water_collapses_to_no_medium(cache_dir, tiny_scene_conf
     assert model.renders_medium
 
 
-def test_the_built_in_scene_keeps_its_water(cache_dir, tiny_scene_config, capsys):
+def test_the_built_in_scene_keeps_its_water(cache_dir, tiny_scene_config, capsys, tmp_path):
     model, dm = _started_model(cache_dir, tiny_scene_config)
     err = capsys.readouterr().err
     assert "water: optical depth" in err and "little or no water:" not in err
@@ -64,6 +67,16 @@ def test_the_built_in_scene_keeps_its_water(cache_dir, tiny_scene_config, capsys
     with torch.no_grad():
         out = model.eval().get_outputs(dm.cameras[0])
     assert not torch.equal(out["rgb"], out["uri"])
+    # the eval compare images of this model: one labelled panel per image, each label documented
+    panels = model.get_image_dict(out, dm.get_batch(dm.test_indices[0]))
+    assert set(panels) <= set(PANEL_LABELS)
+    evaluate_views(model, dm, progress=False, save_dir=tmp_path)
+    compare = read_image(tmp_path / "compare" / f"{Path(dm.scene.image_names[dm.test_indices[0]]).stem}.png")
+    height, width = dm.scene.images.shape[1:3]
+    assert compare.shape[0] > height and compare.shape[1] >= len(panels) * width
+    assert compare[: compare.shape[0] - height].max() > 0.5  # white label text on the black strip
+    documented = (Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text()
+    assert all(f"`{label}`" in documented for label in PANEL_LABELS.values())
 
 
 @pytest.mark.slow
