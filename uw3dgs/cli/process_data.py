@@ -73,6 +73,8 @@ class ProcessDataArgs:
     """Fail, with advice, when structure from motion poses fewer than this share of the images."""
     verbose: bool = False
     """Show COLMAP's own log lines."""
+    threads: int = -1
+    """CPU threads for feature extraction, matching and mapping; -1 uses every core."""
     train_minutes: float = 30.0
     """The suggested `uw-train` command at the end is sized to train in about this long on this machine's CPU
     (downscale factor, then steps; uw3dgs/engine/run_size.py). On a GPU: 3DGS's own size and steps."""
@@ -191,6 +193,8 @@ def process(args: ProcessDataArgs, console: Console, progress: bool = True) -> d
         raise ProcessDataError("give exactly one of --images DIR and --video FILE")
     if args.every_n < 1:
         raise ProcessDataError(f"--every-n must be at least 1, got {args.every_n}")
+    if args.threads == 0 or args.threads < -1:
+        raise ProcessDataError(f"--threads must be -1 (every core) or at least 1, got {args.threads}")
     if args.train_minutes <= 0 or args.train_steps < 1:
         raise ProcessDataError(f"--train-minutes ({args.train_minutes}) must be positive and --train-steps "
                                f"({args.train_steps}) at least 1")
@@ -225,7 +229,7 @@ def _process(args: ProcessDataArgs, out: Path, console: Console, progress: bool,
         camera = parse_camera(args.camera_model, args.camera_params, width, height)
         sparse = run_sfm(source, work, camera, matcher, progress=progress, image_names=names,
                          camera_model=args.camera_model, min_registered_fraction=args.min_registered,
-                         verbose=args.verbose)
+                         verbose=args.verbose, num_threads=args.threads)
         rec = pycolmap.Reconstruction(str(sparse))
         console.print("undistorting to pinhole cameras ...")
         undistort(sparse, source, out)
