@@ -6,7 +6,7 @@ beta_B z (B_inf <= 1). When both optical depths stay below a level tau in every 
 ranges the surfaces are seen at, the water changes no pixel by more than about tau: the scene has little or no
 water, and the water-free render (URI) equals the underwater one (UWI) within that. A medium fitted to such a scene
 is noise (small, never exactly 0), and learning it lets the medium stand in for surfaces (a veiling light the colour
-of a wall), so uw3dgs then renders without one (docs/methods/uw3dgs.md has the measurement).
+of a wall), so uw3dgs then renders without one (docs/evaluation.md, "The water verdict", has the measurement).
 
 The verdict is made before training from the starting estimate (`methods/uw3dgs.py`) and again by uw-eval from the
 learned medium; both are kept in the run folder (`notes/water.json`) and in uw-eval's JSON.

@@ -81,7 +81,7 @@ class ProcessDataArgs:
     train_steps: int = 6000
     """Steps of the suggested command on a CPU (fewer only when even a coarse downscale would not fit)."""
     step_cost: StepCost = StepCost()
-    """The CPU cost model of the suggestion (docs/training.md, "How long a run takes")."""
+    """The CPU cost model of the suggestion (docs/run-time.md)."""
 
 
 class ProcessDataError(ValueError):

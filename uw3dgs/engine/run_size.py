@@ -4,7 +4,7 @@ suggests, with the time it expects.
 Time per step is modelled as base + per_megapixel x (pixels per image / 10^6): the base is what does not grow with
 the image (the Gaussians' projection, sorting, optimiser steps), the other term the per-pixel compositing. The two
 constants are `StepCost`'s defaults, measured for `uw3dgs` on the CPU backend on a real scene seeded with SfM
-points (docs/training.md, "How long a run takes", has the measurement, its command and how the estimate compares
+points (docs/run-time.md has the measurement, its command and how the estimate compares
 with whole runs); the Gaussians' count moves the base, so it is a guide, not a promise. No GPU cost was measured: on
 a GPU the suggestion is 3DGS's own setting (longest side at most 1600 px, 30,000 steps) without a time.
 """
@@ -21,7 +21,7 @@ class StepCost(CheckedConfig):
     """Seconds per `uw3dgs` training step on the CPU: base_s + per_megapixel_s x megapixels per image."""
 
     base_s: float = 0.11
-    """Seconds per step that do not grow with the image size (docs/training.md, "How long a run takes")."""
+    """Seconds per step that do not grow with the image size (docs/run-time.md)."""
     per_megapixel_s: float = 1.05
     """Seconds per step per million pixels of the training image (the same measurement)."""
 
@@ -91,4 +91,4 @@ def suggestion(method: str, data: str, size: RunSize, device: str) -> str:
     if size.seconds is None:
         return f"Train on it with: {command}\n  ({where} on the GPU; no time estimate: no GPU cost was measured)"
     return (f"Train on it with: {command}\n  ({where} on this CPU: about {size.seconds / 60:.0f} minutes of "
-            "training as measured on real scenes, plus loading; docs/training.md, \"How long a run takes\")")
+            "training as measured on real scenes, plus loading; docs/run-time.md)")
