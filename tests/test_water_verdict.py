@@ -14,6 +14,7 @@ from conftest import run_command
 from uw3dgs.cli.eval import entrypoint as uw_eval
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.engine.evaluator import PANEL_LABELS, evaluate_views
+from uw3dgs.engine.run_folder import shape_mismatch
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.fields.water_verdict import far_range, water_verdict
 from uw3dgs.methods.uw3dgs import method as uw3dgs_method
@@ -55,6 +56,8 @@ def test_a_scene_without_water_collapses_to_no_medium(cache_dir, tiny_scene_conf
     assert all(float(v.abs().max()) == 0 for v in model.medium_summary().values())
     # a checkpoint from before the verdict (no 'water_free') loads, as a model that renders its medium
     state = {k: v for k, v in model.state_dict().items() if k != "water_free"}
+    assert shape_mismatch(model, {"model": state, "optimizers": dict.fromkeys(model.param_groups())}, None,
+                          Path("old.ckpt")) is None  # --resume takes it too
     model.load_checkpoint_state(state)
     assert model.renders_medium
 

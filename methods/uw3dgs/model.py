@@ -167,9 +167,9 @@ class UW3DGSModel(GaussianSplattingModel):
             notes["medium_report"] = {**report.to_json(), "lines": report.lines(), "weak": weak_medium_action(report)}
         return notes
 
-    def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
+    def checkpoint_defaults(self) -> dict[str, Tensor]:
         """A checkpoint from before the water verdict has no 'water_free': it rendered with its medium."""
-        super().load_checkpoint_state({"water_free": torch.tensor(False), **state})
+        return {"water_free": torch.tensor(False)}
 
     @property
     def renders_medium(self) -> bool:

@@ -156,7 +156,8 @@ def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoin
     optimizers' states). The message names the options that differ from the checkpoint's config: those under the
     mismatching part of the model (`model.gaussians.*` for `gaussians.shN`, with the selector that chose it, e.g.
     `--model.medium-field`), else every model option that differs."""
-    saved, now = state["model"], model.state_dict()
+    defaults = model.checkpoint_defaults() if hasattr(model, "checkpoint_defaults") else {}
+    saved, now = {**defaults, **state["model"]}, model.state_dict()
     free = set(model.state_keys_resized_in_training())
     problems, parts = [], []
     for key in dict.fromkeys([*saved, *now]):
