@@ -123,10 +123,11 @@ def read_transforms(root: Path) -> TransformsScene:
     """ROOT/transforms.json as a `ColmapModel` (points only from `ply_file_path`; none otherwise) and its split."""
     root = Path(root)
     path = root / TRANSFORMS_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: missing; the nerfstudio datamanager reads a folder with transforms.json "
+                                "(ns-process-data's output), or pose plain images with `uw-process-data --images DIR`")
     try:
         meta = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise
     except (OSError, ValueError) as err:
         raise DatasetError(f"{path}: cannot read it as JSON ({err}); re-export it") from err
     frames = meta.get("frames") if isinstance(meta, dict) else None
