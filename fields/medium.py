@@ -98,6 +98,13 @@ class MediumFieldConfig(InstantiateConfig):
     of the scene), prints it and keeps it in the run folder (`notes/medium_report.json`) and in uw-eval's JSON."""
     identifiability: IdentifiabilityConfig = field(default_factory=IdentifiabilityConfig)
     """The report's thresholds."""
+    no_water_level: float = 0.25
+    """'estimate' judges whether there is water at all (fields/water_verdict.py): little or no water when the
+    optical depths beta_D*z and beta_B*z at the far end of the ranges stay below this in every channel (the water
+    then changes no pixel by more than about this share)."""
+    collapse_without_water: bool = True
+    """With the verdict 'little or no water', render without a medium (the URI is the UWI, as 3DGS) instead of
+    learning water that is not there. False learns the medium anyway."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -110,6 +117,7 @@ class MediumFieldConfig(InstantiateConfig):
         check_number(self, "open_water_max_std", ge=0)
         check_number(self, "open_water_min_uniform", ge=0, le=1)
         check_number(self, "far_end_quantile", ge=0, lt=1)
+        check_number(self, "no_water_level", ge=0)
 
 
 @dataclass(frozen=True)

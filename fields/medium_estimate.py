@@ -177,8 +177,8 @@ def find_open_water(points: Tensor, cameras: list[Camera], images: list[Tensor],
         found.reason = f"the cells no point lands in hold {share:.1%} of the pixels (< {min_share:.1%})"
     elif uniform < min_uniform:
         found.reason = (f"only {uniform:.0%} of the {len(stds)} cells no point lands in are one colour (< "
-                        f"{min_uniform:.0%} with pixel std <= {max_std:.3f}): holes in the points over seabed, "
-                        "not water")
+                        f"{min_uniform:.0%} with pixel std <= {max_std:.3f}): holes in the points over textured "
+                        "surfaces, not water")
     else:
         found.color = pixels.float().median(dim=0).values
     return found

@@ -227,7 +227,7 @@ class IdentifiabilityReport:
         out.append(f"ranges {z10:.2f}-{z90:.2f} (10-90%), {self.dark_samples} backscatter samples, open water {water}")
         reach = "/".join(f"{z:.1f}" for z in self.recoverable_range)
         beyond = "/".join(f"{x:.0%}" for x in self.unrecoverable_share)
-        out.append(f"the water-free image is recoverable to range {reach} (R/G/B; beyond it a typical seabed colour "
+        out.append(f"the water-free image is recoverable to range {reach} (R/G/B; beyond it a typical surface colour "
                    f"sends under one grey level through the water): {beyond} of the fitted points are seen only "
                    "beyond it")
         if self.spatial_disagreement is not None:

@@ -50,9 +50,11 @@ def _run(argv: list[str], capsys) -> tuple[int, str]:
 
 def test_photos_become_a_colmap_dataset(scene_dir, tmp_path, capsys):
     out = tmp_path / "reef"
-    code, text = _run(["--images", str(scene_dir / "Images_wb"), "--out", str(out)], capsys)
+    code, text = _run(["--images", str(scene_dir / "Images_wb"), "--out", str(out), "--threads", "2"], capsys)
     assert code == 0, text
     assert "12 of 12 registered" in text and "exhaustive" in text and f"uw-train uw3dgs --data {out}" in text
+    # sized to the machine: 160x120 images train at full size in the default 30 minutes on a CPU
+    assert "--downscale-factor 1 --max-num-iterations 6000" in text and "minutes of training" in text
     assert sorted(p.name for p in (out / "images").iterdir()) == [f"{k:04d}.png" for k in range(12)]
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     assert {c.model_name for c in rec.cameras.values()} == {"PINHOLE"}  # undistorted
@@ -113,6 +115,9 @@ def test_argument_errors(scene_dir, tmp_path, capsys):
     code, text = _run(["--images", str(scene_dir / "Images_wb"), "--out", str(tmp_path / "b"),
                        "--camera-params", "1,2"], capsys)
     assert code == 2 and "takes 8 parameters, got 2" in text
+    code, text = _run(["--images", str(scene_dir / "Images_wb"), "--out", str(tmp_path / "c"), "--threads", "0"],
+                      capsys)
+    assert code == 2 and "--threads must be -1" in text
 
 
 def test_video_without_ffmpeg_says_what_to_do(tmp_path, capsys, monkeypatch):

@@ -128,6 +128,28 @@ def test_interpolated_path_passes_through_the_keys_and_is_smooth_between():
         assert float((after - before).norm()) < 1e-2 * float(after.norm())
 
 
+def test_spiral_stays_at_the_training_cameras_distance_and_height():
+    """Forward-looking cameras tilted down at a patch of surface (a dive): the spiral's cameras keep their
+    distances to the scene centre (the focus) and their heights above it."""
+    from uw3dgs.render.camera_path import look_at
+
+    generator = torch.Generator().manual_seed(0)
+    points = torch.rand(500, 3, generator=generator, dtype=torch.float64) * torch.tensor([4.0, 4.0, 0.2])
+    target = torch.tensor([2.0, 2.0, 0.0], dtype=torch.float64)
+    keys = torch.stack([look_at(torch.tensor([0.5 * k, -1.0 + 0.1 * k, 2.0 + 0.2 * (k % 3)], dtype=torch.float64),
+                                target, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)) for k in range(8)])
+    spiral = spiral_poses(keys, points, 36)
+    centres, axes = spiral[:, :3, 3], spiral[:, :3, 2]
+    projector = torch.eye(3, dtype=torch.float64) - axes[:, :, None] * axes[:, None, :]
+    focus = torch.linalg.solve(projector.sum(0), (projector @ centres[..., None]).sum(0))[:, 0]
+    reach, distances = (keys[:, :3, 3] - focus).norm(dim=-1), (centres - focus).norm(dim=-1)
+    assert float(distances.min()) >= float(reach.min()) - 1e-9 and float(distances.max()) <= float(reach.max()) + 1e-9
+    up = -keys[:, :3, 1].mean(0)
+    up = up / up.norm()
+    heights, key_heights = (centres - focus) @ up, (keys[:, :3, 3] - focus) @ up
+    assert float(heights.min()) >= float(key_heights.min()) - 1e-6
+
+
 def test_interpolate_and_spiral_cameras_of_a_run(uw_run):
     _, datamanager, _, _ = load_trained(uw_run)
     train = [datamanager.scene.cameras[i] for i in datamanager.train_indices]
@@ -149,6 +171,10 @@ def test_interpolate_and_spiral_cameras_of_a_run(uw_run):
     spread = (centres - centres.mean(0)).norm(dim=-1)
     assert float(spread.min()) > 0  # it moves around the mean pose ...
     assert float(spread.max()) <= float((keys[:, :3, 3] - keys[:, :3, 3].mean(0)).norm(dim=-1).max()) * 2  # near it
+    # ... at the training cameras' own distances to the scene centre (the focus): no close-ups, nothing beyond
+    reach = (keys[:, :3, 3] - focus).norm(dim=-1)
+    distances = (centres - focus).norm(dim=-1)
+    assert float(distances.min()) >= float(reach.min()) - 1e-9 and float(distances.max()) <= float(reach.max()) + 1e-9
 
 
 # -- frames and video --

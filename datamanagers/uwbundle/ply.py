@@ -52,6 +52,13 @@ def _ply_header(path: Path, data: bytes) -> tuple[str, list[_PlyElement], int]:
 
 def read_ply_points(path: Path) -> np.ndarray:
     """Vertex positions [N, 3] (float64) of a PLY mesh or point cloud, ASCII or binary; faces are ignored."""
+    vertex = read_ply_vertices(path)
+    return np.stack([vertex[a] for a in "xyz"], axis=1).reshape(-1, 3)
+
+
+def read_ply_vertices(path: Path) -> dict[str, np.ndarray]:
+    """Every scalar property of the vertices of a PLY file ({name: [N] float64}: x, y, z and whatever else it
+    holds, e.g. red, green, blue as 0..255), ASCII or binary; faces are ignored."""
     path = Path(path)
     data = path.read_bytes()
     fmt, elements, offset = _ply_header(path, data)
@@ -61,7 +68,6 @@ def read_ply_points(path: Path) -> np.ndarray:
     names = [p[0] for p in vertex.properties]
     if not {"x", "y", "z"} <= set(names) or any(p[2] is not None for p in vertex.properties):
         raise ValueError(f"{path}: the vertex element needs scalar x, y, z properties, has {names}")
-    cols = [names.index(a) for a in "xyz"]
     if fmt == "ascii":
         lines = data[offset:].decode("ascii", errors="replace").splitlines()
         skip = 0
@@ -73,10 +79,10 @@ def read_ply_points(path: Path) -> np.ndarray:
         if len(rows) < vertex.count:
             raise ValueError(f"{path}: {len(rows)} vertex lines for {vertex.count} vertices (truncated file?)")
         try:
-            table = np.array([row.split()[: len(names)] for row in rows], dtype=np.float64)
+            table = np.array([row.split()[: len(names)] for row in rows], dtype=np.float64).reshape(-1, len(names))
         except ValueError as err:
             raise ValueError(f"{path}: malformed ASCII vertex line ({err})") from err
-        return table[:, cols].reshape(-1, 3)
+        return {name: table[:, k] for k, name in enumerate(names)}
     endian = "<" if fmt == "binary_little_endian" else ">"
     for el in elements:
         if el is vertex:
@@ -86,7 +92,7 @@ def read_ply_points(path: Path) -> np.ndarray:
     if offset + dtype.itemsize * vertex.count > len(data):
         raise ValueError(f"{path}: file ends inside the vertex data (truncated download?)")
     table = np.frombuffer(data, dtype=dtype, count=vertex.count, offset=offset)
-    return np.stack([table[a].astype(np.float64) for a in "xyz"], axis=1)
+    return {name: table[name].astype(np.float64) for name in names}
 
 
 def _skip_binary_element(path: Path, data: bytes, offset: int, el: _PlyElement, endian: str) -> int:

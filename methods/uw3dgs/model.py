@@ -24,6 +24,7 @@ from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
+from uw3dgs.fields.water_verdict import WaterVerdict, far_range, water_verdict
 from uw3dgs.medium.formation import Water, form_underwater_image, form_with_water
 from uw3dgs.methods.gaussian_splatting import (
     COVERAGE_EPS,
@@ -101,6 +102,11 @@ class UW3DGSModel(GaussianSplattingModel):
         self.medium: MediumField | None = None
         self.medium_report: IdentifiabilityReport | None = None
         """The report on the starting estimate (`initialize_from_data`; None: not made, or a loaded run)."""
+        self.water: WaterVerdict | None = None
+        """The verdict on the starting estimate: is there water at all (`initialize_from_data`; None: not made)."""
+        self.register_buffer("water_free", torch.tensor(False))
+        """True: the scene has little or no water, and the model renders without its medium (the URI is the UWI);
+        set once before training (`initialize_from_data`), kept in checkpoints."""
         if config.use_medium:
             centers = torch.stack([scene.cameras[i].center for i in train_indices]).float()
             self.medium = config.medium.setup(points=scene.points, camera_centers=centers, kernels=config.kernels)
@@ -124,6 +130,14 @@ class UW3DGSModel(GaussianSplattingModel):
             source = f"read off the far end of the ranges (no open water: {why or 'not looked for'})" \
                 if water is None else f"read off open water: ({', '.join(f'{x:.3f}' for x in water.tolist())})"
             info(f"medium estimate: B_inf {source}")
+            self.water = water_verdict(estimate.beta_d, estimate.beta_b, far_range(estimate.observations[2]),
+                                       mc.no_water_level)
+            info(f"water: {self.water.line()}")
+            if self.water.little_water and mc.collapse_without_water:
+                self.water_free.fill_(True)
+                info("water: uw3dgs renders without a medium here, as 3dgs does (the medium report is skipped; "
+                     "--model.medium.no-collapse-without-water learns a medium anyway)")
+                return
             if mc.report:
                 self.medium_report = assess_medium(*estimate.observations, estimate.fit, water, mc.dark_bins,
                                                    mc.dark_share, mc.estimate_residual, mc.identifiability,
@@ -143,11 +157,24 @@ class UW3DGSModel(GaussianSplattingModel):
 
     def run_notes(self) -> dict[str, dict]:
         """'medium_report': the identifiability report on the estimate the run started from
-        (`--model.medium.report`)."""
+        (`--model.medium.report`); 'water': the verdict on whether there is water at all, and whether the model
+        renders without a medium ('collapsed')."""
+        notes = {}
+        if self.water is not None:
+            notes["water"] = {**self.water.to_json(), "collapsed": bool(self.water_free)}
         report = self.medium_report
-        if report is None:
-            return {}
-        return {"medium_report": {**report.to_json(), "lines": report.lines(), "weak": weak_medium_action(report)}}
+        if report is not None:
+            notes["medium_report"] = {**report.to_json(), "lines": report.lines(), "weak": weak_medium_action(report)}
+        return notes
+
+    def checkpoint_defaults(self) -> dict[str, Tensor]:
+        """A checkpoint from before the water verdict has no 'water_free': it rendered with its medium."""
+        return {"water_free": torch.tensor(False)}
+
+    @property
+    def renders_medium(self) -> bool:
+        """Whether images are formed through the medium (a medium, and not judged water-free)."""
+        return self.medium is not None and not bool(self.water_free)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         groups = super().param_groups()
@@ -185,7 +212,7 @@ class UW3DGSModel(GaussianSplattingModel):
         else:
             outputs = self.render(camera, depth_weights=weights)
         uri = outputs["uri"] = outputs.pop("radiance")
-        if self.medium is None:
+        if not self.renders_medium:
             outputs["rgb"] = self.over_background(uri, outputs["alpha"])
             return outputs
         with section("medium"):
@@ -199,8 +226,8 @@ class UW3DGSModel(GaussianSplattingModel):
     def render_view(self, camera: Camera, water: Water | None = None) -> dict[str, Tensor]:
         """`Model.render_view`: the evaluation form whatever the mode (no PAUP training branch); with a medium the
         underwater image formed with `water` as 'rgb', the water-free radiance as 'uri', and the formation's two
-        terms."""
-        if self.medium is None:
+        terms (none for a scene judged water-free)."""
+        if not self.renders_medium:
             return super().render_view(camera)
         out = self.render(camera, depth_weights=self.depth_weights())
         beta_d, beta_b = self.ray_betas(camera, out["range"])
@@ -210,11 +237,12 @@ class UW3DGSModel(GaussianSplattingModel):
                 "attenuation": formed["attenuation"], "backscatter": formed["backscatter"]}
 
     def veiling_light(self) -> Tensor | None:
-        return None if self.medium is None else self.medium.b_inf.detach()
+        return self.medium.b_inf.detach() if self.renders_medium else None
 
     def export_medium(self, dataset_center: tuple[float, float, float], dataset_scale: float,
                       samples: int) -> dict | None:
-        return None if self.medium is None else self.medium.summary(dataset_center, dataset_scale, samples)
+        """None without a medium, or for a scene judged water-free (no medium is rendered)."""
+        return self.medium.summary(dataset_center, dataset_scale, samples) if self.renders_medium else None
 
     def render_with_paup(self, camera: Camera, depth_weights: Tensor | None) -> dict[str, Any]:
         """Training render from PAUP's start: `render`'s outputs (the UWI is formed from this full I_UR, as
@@ -274,7 +302,7 @@ class UW3DGSModel(GaussianSplattingModel):
         c = self.config.paup
         means = self.gaussians.means
         opacities = torch.sigmoid(self.gaussians.opacities)
-        beta_d = self.medium.betas(means)[0] if self.medium is not None else None
+        beta_d = self.medium.betas(means)[0] if self.renders_medium else None
         weights = self.depth_weights()
         views = []
         for view in self.nearest_train_cameras(camera, c.num_views):
@@ -301,7 +329,7 @@ class UW3DGSModel(GaussianSplattingModel):
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         losses = super().get_loss_dict(outputs, batch, step)
         c = self.config
-        if self.medium is not None and c.beta_loss_weight > 0:
+        if self.renders_medium and c.beta_loss_weight > 0:
             means, picked = self.gaussians.means.detach(), None
             if len(means) > c.beta_loss_samples:  # an unbiased estimate of the mean over all centres
                 picked = torch.randint(len(means), (c.beta_loss_samples,), device=means.device)
@@ -328,9 +356,13 @@ class UW3DGSModel(GaussianSplattingModel):
         return pus if picked is None else pus[picked]
 
     def medium_summary(self) -> dict[str, Tensor]:
-        """Learned B_inf and the mean of beta_D, beta_B over the Gaussian centres (per channel)."""
+        """Learned B_inf and the mean of beta_D, beta_B over the Gaussian centres (per channel); zeros for a scene
+        judged water-free (the model renders no medium there)."""
         if self.medium is None:
             return {}
+        if not self.renders_medium:
+            zeros = self.medium.b_inf.detach() * 0
+            return {"b_inf": zeros, "beta_d": zeros, "beta_b": zeros}
         with torch.no_grad():
             beta_d, beta_b = self.medium.betas(self.gaussians.means)
         return {"b_inf": self.medium.b_inf.detach(), "beta_d": beta_d.mean(0), "beta_b": beta_b.mean(0)}
@@ -345,7 +377,7 @@ class UW3DGSModel(GaussianSplattingModel):
                             "paup/pruned_total": float(self.paup.pruned_total)})
             if "floater_probability" in outputs:
                 metrics["paup/mean_floater_probability"] = float(outputs["floater_probability"].detach().mean())
-        if self.medium is None:
+        if "beta_d" not in outputs:  # no medium rendered
             return metrics
         values = {"b_inf": self.medium.b_inf.detach(), "beta_d": outputs["beta_d"].detach().mean((0, 1)),
                   "beta_b": outputs["beta_b"].detach().mean((0, 1))}

@@ -25,6 +25,7 @@ from typing import Literal
 
 import numpy as np
 import pycolmap
+import torch
 import tyro
 from PIL import Image
 from rich.console import Console
@@ -33,6 +34,7 @@ from rich.table import Table
 
 from uw3dgs.cli.errors import exit_with_error
 from uw3dgs.data.sfm import FixedCamera, SfmError, list_images, quiet_colmap, run_sfm
+from uw3dgs.engine.run_size import StepCost, size_run, suggestion
 from uw3dgs.utils.console import warn
 from uw3dgs.utils.images import image_size
 from uw3dgs.utils.io import atomic_folder
@@ -71,6 +73,15 @@ class ProcessDataArgs:
     """Fail, with advice, when structure from motion poses fewer than this share of the images."""
     verbose: bool = False
     """Show COLMAP's own log lines."""
+    threads: int = -1
+    """CPU threads for feature extraction, matching and mapping; -1 uses every core."""
+    train_minutes: float = 30.0
+    """The suggested `uw-train` command at the end is sized to train in about this long on this machine's CPU
+    (downscale factor, then steps; uw3dgs/engine/run_size.py). On a GPU: 3DGS's own size and steps."""
+    train_steps: int = 6000
+    """Steps of the suggested command on a CPU (fewer only when even a coarse downscale would not fit)."""
+    step_cost: StepCost = StepCost()
+    """The CPU cost model of the suggestion (docs/run-time.md)."""
 
 
 class ProcessDataError(ValueError):
@@ -182,6 +193,11 @@ def process(args: ProcessDataArgs, console: Console, progress: bool = True) -> d
         raise ProcessDataError("give exactly one of --images DIR and --video FILE")
     if args.every_n < 1:
         raise ProcessDataError(f"--every-n must be at least 1, got {args.every_n}")
+    if args.threads == 0 or args.threads < -1:
+        raise ProcessDataError(f"--threads must be -1 (every core) or at least 1, got {args.threads}")
+    if args.train_minutes <= 0 or args.train_steps < 1:
+        raise ProcessDataError(f"--train-minutes ({args.train_minutes}) must be positive and --train-steps "
+                               f"({args.train_steps}) at least 1")
     check_out(args.out)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -213,7 +229,7 @@ def _process(args: ProcessDataArgs, out: Path, console: Console, progress: bool,
         camera = parse_camera(args.camera_model, args.camera_params, width, height)
         sparse = run_sfm(source, work, camera, matcher, progress=progress, image_names=names,
                          camera_model=args.camera_model, min_registered_fraction=args.min_registered,
-                         verbose=args.verbose)
+                         verbose=args.verbose, num_threads=args.threads)
         rec = pycolmap.Reconstruction(str(sparse))
         console.print("undistorting to pinhole cameras ...")
         undistort(sparse, source, out)
@@ -251,7 +267,10 @@ def entrypoint(argv: Sequence[str] | None = None) -> None:
     console.print(summary_table(args, info))
     if info["warning"]:
         warn(info["warning"])
-    console.print(f"Train on it with: uw-train uw3dgs --data {args.out}")
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    cam = info["camera"]
+    size = size_run(cam.width, cam.height, device, 60.0 * args.train_minutes, args.train_steps, args.step_cost)
+    console.print(suggestion("uw3dgs", str(args.out), size, device))
 
 
 if __name__ == "__main__":

@@ -94,9 +94,15 @@ class DataManager:
                              f"({err.width}x{err.height} pixels{f' in {data}' if data is not None else ''}): "
                              f"choose a factor of at most {min(err.width, err.height)}") from err
         check_scene(self.scene, type(self.parser).__name__)
-        self.train_indices, self.test_indices = split_indices(len(self.scene.image_names), config.llffhold)
-        if not self.train_indices:
-            raise ValueError(f"{data}: no training views left after holding out every {config.llffhold}-th view")
+        if self.scene.split is not None:
+            self.train_indices, self.test_indices = (list(s) for s in self.scene.split)
+            if not self.train_indices:
+                raise ValueError(f"{data}: the split the dataset names has no training view")
+        else:
+            self.train_indices, self.test_indices = split_indices(len(self.scene.image_names), config.llffhold)
+            if not self.train_indices:
+                raise ValueError(f"{data}: no training views left after holding out every {config.llffhold}-th "
+                                 "view")
         self.images = self.scene.images.to(self.device)
         self.cameras = [c.to(self.device) for c in self.scene.cameras]
         self._generator = torch.Generator().manual_seed(seed)
@@ -175,8 +181,7 @@ class AutoDataManagerConfig(DataManagerConfig):
                 raise FileNotFoundError(f"--data {data} does not exist")
             found = [spec for _, spec in DATAMANAGERS.items() if type(spec.config).can_read(Path(data))]
             if not found:
-                raise ValueError(f"--data {data}: no datamanager recognises this folder "
-                                 f"(known: {', '.join(DATAMANAGERS)}); see the README's data layouts")
+                raise ValueError(unrecognised_folder_message(Path(data), list(DATAMANAGERS)))
             if len(found) > 1 and sum(not type(s.config).generic for s in found) == 1:
                 found = [s for s in found if not type(s.config).generic]
             if len(found) > 1:
@@ -185,3 +190,17 @@ class AutoDataManagerConfig(DataManagerConfig):
                                  f"method, e.g. `uw-train 3dgs --data {data} {found[0].name}`")
             chosen = found[0].config
         return type(chosen)(**{**chosen.__dict__, "llffhold": self.llffhold})
+
+
+def unrecognised_folder_message(data: Path, known: list[str]) -> str:
+    """The one-line error for a --data folder no datamanager reads; a plain folder of images gets the command
+    that poses it."""
+    from uw3dgs.data.seathru_layout import IMAGE_SUFFIXES
+
+    has_images = data.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in data.iterdir() if p.is_file())
+    if has_images or (data / "images").is_dir():
+        images = data if has_images else data / "images"
+        return (f"--data {data}: images without camera poses; pose them first with `uw-process-data --images "
+                f"{images} --out DIR`, then `uw-train ... --data DIR`")
+    return (f"--data {data}: no datamanager recognises this folder (known: {', '.join(known)}); see the README's "
+            "data layouts")

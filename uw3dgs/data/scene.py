@@ -50,6 +50,9 @@ class SceneData:
     gt_points: Tensor | None = None
     """[M, 3] ground-truth surface points (UWBundle's groundtruth.ply) for geometry evaluation, in the
     ground-truth file's own frame and units: not the world frame (see docs/uwbundle.md)."""
+    split: tuple[list[int], list[int]] | None = None
+    """(train, test) view indices the dataset itself names (e.g. transforms.json's train_filenames); None: the
+    datamanager holds out every llffhold-th view."""
 
 
 def scene_extent(cameras: list[Camera]) -> float:

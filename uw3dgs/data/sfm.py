@@ -30,6 +30,8 @@ Matcher = Literal["exhaustive", "sequential"]
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 EXTRACTION_CHUNK = 16
 """Images per feature-extraction call: small enough for a live progress bar, large enough to keep threads busy."""
+MATCH_BLOCK_PAIRS = 256
+"""Image pairs per matching call, for the same reason."""
 
 
 class SfmError(RuntimeError):
@@ -191,19 +193,24 @@ def sequential_pairs(names: Sequence[str], overlap: int,
 
 def _match(database: Path, work_dir: Path, names: Sequence[str], matcher: Matcher, overlap: int,
            sequence_key: Callable[[str], str] | None, num_threads: int, bar: Progress) -> None:
-    task = bar.add_task(f"matching ({matcher})", total=1)
+    """Match the image pairs (every pair, or `sequential_pairs`) as explicit pair lists of MATCH_BLOCK_PAIRS pairs
+    each, so the bar counts pairs (exhaustive matching is one call otherwise, silent for minutes)."""
+    if matcher == "exhaustive":
+        pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+    else:  # stereo partners count as one step
+        pairs = list(sequential_pairs(names, overlap, sequence_key))
+    task = bar.add_task(f"matching ({matcher}, pairs)", total=len(pairs))
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = num_threads
-    if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
-    else:  # sequential, as an explicit pair list so that stereo partners count as one step
-        pair_file = work_dir / "pairs.txt"
-        pair_file.write_text("".join(f"{a} {b}\n" for a, b in sequential_pairs(names, overlap, sequence_key)))
+    pair_file = work_dir / "pairs.txt"
+    for start in range(0, len(pairs), MATCH_BLOCK_PAIRS):
+        block = pairs[start:start + MATCH_BLOCK_PAIRS]
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in block))
         pairing = pycolmap.ImportedPairingOptions()
         pairing.match_list_path = str(pair_file)
         pycolmap.match_image_pairs(database, matching_options=options, pairing_options=pairing,
                                    device=pycolmap.Device.cpu)
-    bar.advance(task)
+        bar.advance(task, len(block))
 
 
 def _mapping_options(fixed_intrinsics: bool, seed: int, num_threads: int) -> pycolmap.IncrementalPipelineOptions:

@@ -23,7 +23,19 @@ from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.run_folder import state_problems
 from uw3dgs.models.base import Model
 from uw3dgs.utils.images import write_image
-from uw3dgs.utils.visualize import image_grid
+from uw3dgs.utils.video import labelled_row
+
+PANEL_LABELS = {
+    "gt": "photo", "render": "render", "uwi": "UWI", "uri": "URI (no water)", "depth": "range",
+    "attenuation": "attenuation", "backscatter": "backscatter", "gt_clean": "clean truth",
+    "uri_enhanced": "URI, PAUP-kept", "uncertainty": "PAUP uncertainty",
+}
+"""The label over each panel of the `compare` images, by `Model.get_image_dict` key (docs/evaluation.md says what
+each shows); a key not listed is labelled with itself."""
+
+
+def panel_label(key: str) -> str:
+    return PANEL_LABELS.get(key, key)
 
 
 @torch.no_grad()
@@ -43,7 +55,8 @@ def evaluate_views(model: Model, datamanager: DataManager, progress: bool = True
             stem = Path(name).stem
             for key, image in images.items():
                 write_image(save_dir / key / f"{stem}.png", image)
-            write_image(save_dir / "compare" / f"{stem}.png", image_grid(list(images.values()), ncols=len(images)))
+            write_image(save_dir / "compare" / f"{stem}.png",
+                        labelled_row(list(images.values()), [panel_label(key) for key in images]))
             if "covisible" in batch:  # white: some training view sees it; black: no training view does
                 mask = batch["covisible"].float()[..., None].expand(-1, -1, 3)
                 write_image(save_dir / "covisible" / f"{stem}.png", mask)

@@ -3,7 +3,8 @@ for other processes (`uw-bench`'s grid view): `{"step", "max_steps", "steps_per_
 atomically at most every STATUS_SECONDS and when training stops.
 
 It draws on the shared console (`uw3dgs.utils.console.CONSOLE`, stderr), so the `info` / `warn` lines printed
-while it runs go above it instead of tearing it."""
+while it runs go above it instead of tearing it. When stderr is not a terminal (a log file, a batch job), a bar
+cannot redraw: one plain line is printed every PLAIN_LINE_SECONDS and at the last step instead."""
 
 from __future__ import annotations
 
@@ -25,6 +26,8 @@ from uw3dgs.utils.io import write_json
 STATUS_FILE = "status.json"
 STATUS_SECONDS = 2.0
 """How often status.json is rewritten at most (a write is one small atomic file)."""
+PLAIN_LINE_SECONDS = 30.0
+"""How often a progress line is printed when stderr is not a terminal."""
 
 
 class TrainingProgress:
@@ -38,11 +41,16 @@ class TrainingProgress:
         self.status_path = None if status_dir is None else Path(status_dir) / STATUS_FILE
         self._status_written = float("-inf")
         self.enabled = enabled
+        self.plain = enabled and not self.console.is_terminal
+        """Plain periodic lines instead of the bar (stderr is not a terminal)."""
+        self._line_printed = time.monotonic()
+        self._start_step = start
+        self._started = time.monotonic()
         self.smoothing = smoothing
         self.steps_per_second = 0.0
         self._progress = Progress(
             TextColumn("[bold blue]train"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[stats]}"),
-            TimeElapsedColumn(), TimeRemainingColumn(), console=self.console, disable=not enabled,
+            TimeElapsedColumn(), TimeRemainingColumn(), console=self.console, disable=not enabled or self.plain,
             refresh_per_second=4)
         self._task = self._progress.add_task("train", total=total, completed=start, stats="")
 
@@ -75,3 +83,16 @@ class TrainingProgress:
             parts.append(f"{int(metrics['num_gaussians']):,} G")
         parts.append(f"{self.steps_per_second:.1f} it/s")
         self._progress.update(self._task, completed=step, stats=" | ".join(parts))
+        if self.plain:
+            self._print_line(step, parts)
+
+    def _print_line(self, step: int, parts: list[str]) -> None:
+        now = time.monotonic()
+        if now - self._line_printed < PLAIN_LINE_SECONDS and step != self.total:
+            return
+        self._line_printed = now
+        done = step - self._start_step
+        rate = done / max(now - self._started, 1e-9)
+        left = f"{(self.total - step) / rate / 60:.1f} min left" if rate > 0 else "time left unknown"
+        line = f"train {step}/{self.total} ({100 * step / max(self.total, 1):.0f}%) | {' | '.join(parts)} | {left}"
+        self.console.print(line, soft_wrap=True, highlight=False, markup=False)

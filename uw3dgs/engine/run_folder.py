@@ -179,7 +179,7 @@ def state_problems(model: Any, saved: dict[str, torch.Tensor]) -> tuple[list[str
     """What `model` would not take from the saved state_dict `saved`: the keys only in one of them and the tensors
     of other shapes (the first dimension of those density control resizes is free), as 'key ...' texts; and the
     top-level parts of the model (e.g. 'gaussians') they belong to."""
-    now = model.state_dict()
+    saved, now = {**model.checkpoint_defaults(), **saved}, model.state_dict()
     free = set(model.state_keys_resized_in_training())
     problems, parts = [], []
     for key in dict.fromkeys([*saved, *now]):

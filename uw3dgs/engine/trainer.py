@@ -67,6 +67,21 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def prepare_kernels(model_config: Any, device: torch.device) -> float:
+    """Build (first use) or load the compiled CPU kernels now, before the training clock starts, when the run will
+    use them (CPU, the compiled rasterizer); returns the seconds it took (0 when not used). `train_seconds` then
+    counts training only, not a first compile (docs/training.md, "The run folder")."""
+    from uw3dgs.render import cpu_backend
+    from uw3dgs.render.rasterize import select_backend
+
+    raster = getattr(model_config, "raster", None)
+    if device.type != "cpu" or raster is None or select_backend(raster.backend, device) != "cpu":
+        return 0.0
+    start = time.perf_counter()
+    cpu_backend.load_extension()
+    return time.perf_counter() - start
+
+
 def read_train_time(run_dir: Path) -> dict[str, Any] | None:
     """RUN/train_time.json, or None where the run has none (it predates the record) or it cannot be read."""
     try:
@@ -116,6 +131,7 @@ class Trainer:
         torch.manual_seed(config.seed)
         self.datamanager: DataManager = config.datamanager.setup(
             data=config.data, downscale_factor=config.downscale_factor, device=self.device, seed=config.seed)
+        self.kernel_seconds = prepare_kernels(config.model, self.device)
         self.run_dir = self._run_dir()
         try:
             self._setup_in_run_dir()

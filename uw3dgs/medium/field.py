@@ -14,6 +14,10 @@ MEANING = ("Underwater image formation (Akkaynak-Treibitz, as UW-3DGS uses it): 
            "(bounds_max - bounds_min) of the dataset frame, indexed [i][j][k][channel] along x, y, z; outside the box "
            "the model reads the nearest border value.")
 
+CONSTANT_TOLERANCE = 1e-5
+"""A field whose sampled betas vary by at most this share of their largest value (float rounding) is written as one
+value per channel."""
+
 
 class Medium(nn.Module):
     """A medium field. Subclasses hold `b_inf` [3] (a parameter or buffer) and implement `betas`; one that varies in
@@ -38,7 +42,8 @@ class Medium(nn.Module):
     def summary(self, dataset_center: tuple[float, float, float], dataset_scale: float,
                 samples: int) -> dict[str, Any]:
         """The medium as a JSON-ready dict in the dataset frame (`MEANING`): a homogeneous one as one value per
-        channel; one with a box sampled at `samples` (>= 2) points per axis over it."""
+        channel; one with a box sampled at `samples` (>= 2) points per axis over it, unless its samples are one value
+        everywhere (to CONSTANT_TOLERANCE), then as one value too."""
         data: dict[str, Any] = {"b_inf": [float(v) for v in self.b_inf.detach().cpu()], "meaning": MEANING}
         box = self.box()
         if box is None:
@@ -51,6 +56,11 @@ class Medium(nn.Module):
         axes = [lo[a] + t * (hi[a] - lo[a]) for a in range(3)]
         points = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)  # world frame
         beta_d, beta_b = self.betas(points.to(self.b_inf.device))
+        if all(float((b.max(0).values - b.min(0).values).max()) <= CONSTANT_TOLERANCE * float(b.abs().max())
+               for b in (beta_d, beta_b)):  # a field that is one value everywhere (e.g. as started): written as one
+            data.update(kind="homogeneous", beta_d=[float(v) for v in beta_d.mean(0).cpu()],
+                        beta_b=[float(v) for v in beta_b.mean(0).cpu()])
+            return data
         center = torch.tensor(dataset_center, dtype=torch.float64)
         data.update(kind="grid", shape=[samples] * 3,
                     bounds_min=[float(v) for v in lo.double() * dataset_scale + center],

@@ -160,6 +160,12 @@ class Model(nn.Module):
         Gaussians); `--resume` compares every other shape with the checkpoint's exactly. Default: none."""
         return set()
 
+    def checkpoint_defaults(self) -> dict[str, Tensor]:
+        """state_dict entries a checkpoint written before they existed lacks, with the value that means what such a
+        run did (`--resume` and `uw-eval` then take it). Default: none."""
+        return {}
+
     def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
-        """Load weights saved by `state_dict()` (override when parameter shapes change in training)."""
-        self.load_state_dict(state)
+        """Load weights saved by `state_dict()` (override when parameter shapes change in training); entries of
+        `checkpoint_defaults` the checkpoint lacks take their default."""
+        self.load_state_dict({**self.checkpoint_defaults(), **state})

@@ -147,8 +147,9 @@ def spiral_poses(keys: Tensor, points: Tensor, num_frames: int) -> Tensor:
     `points` [P, 3] in front of the mean pose. In the mean pose's frame the camera moves
     (r_x cos a, r_y sin a, r_z sin(a / SPIRAL_TURNS)) for a = 2 pi SPIRAL_TURNS k / num_frames, where r_x, r_y, r_z
     are the SPIRAL_RADIUS_PERCENTILE-th percentiles of the training centres' distances from their mean along each
-    axis, r_z at most SPIRAL_MAX_DEPTH_SHARE of the focus depth. Raises ValueError when no point lies in front of
-    the mean pose (nothing to look at)."""
+    axis, r_z at most SPIRAL_MAX_DEPTH_SHARE of the focus depth. Each position is then held to the training cameras'
+    own distances to the focus and heights (`within_training_band`), so the spiral never dives in for close-ups or
+    under the scene. Raises ValueError when no point lies in front of the mean pose (nothing to look at)."""
     if num_frames < 1:
         raise ValueError(f"num_frames must be at least 1, got {num_frames}")
     mean = mean_pose(keys)
@@ -167,5 +168,24 @@ def spiral_poses(keys: Tensor, points: Tensor, num_frames: int) -> Tensor:
     for k in range(num_frames):
         a = 2.0 * math.pi * SPIRAL_TURNS * k / num_frames
         local = radii * torch.tensor([math.cos(a), math.sin(a), math.sin(a / SPIRAL_TURNS)], dtype=torch.float64)
-        poses.append(look_at(c + R @ local, focus, R[:, 1]))
+        position = within_training_band(c + R @ local, focus, -R[:, 1], keys.double()[:, :3, 3])
+        poses.append(look_at(position, focus, R[:, 1]))
     return torch.stack(poses)
+
+
+def within_training_band(position: Tensor, focus: Tensor, up: Tensor, centres: Tensor) -> Tensor:
+    """`position` [3] moved to the band the training `centres` [K, 3] occupy around `focus` [3]: its distance to
+    the focus clamped to theirs (min to max), its height along the unit `up` [3] over the focus clamped to theirs
+    (and to that distance), its horizontal direction kept."""
+    offsets = centres - focus
+    distances, heights = offsets.norm(dim=-1), offsets @ up
+    offset = position - focus
+    distance = float(offset.norm().clamp(float(distances.min()), float(distances.max())))
+    height = min(max(float(offset @ up), float(heights.min())), float(heights.max()))
+    height = min(max(height, -distance), distance)  # the distance wins: it is what keeps the scene in frame
+    horizontal = offset - (offset @ up) * up
+    norm = float(horizontal.norm())
+    if norm < 1e-12:  # straight above or below the focus: any horizontal direction
+        horizontal = torch.linalg.svd(up[None])[2][1]
+        norm = 1.0
+    return focus + height * up + math.sqrt(max(distance**2 - height**2, 0.0)) * horizontal / norm
