@@ -34,6 +34,8 @@ from uw3dgs.data import colmap_dataset
 from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.data.datamanager import DataManagerConfig
 from uw3dgs.data.dataparser import DataParser
+from uw3dgs.data.ply import read_ply_points
+from uw3dgs.data.ply import write_ply_points as write_ply_points
 from uw3dgs.data.scene import SceneData
 from uw3dgs.data.sfm import IMAGE_EXTENSIONS, list_images, quiet_colmap, run_sfm
 from uw3dgs.datamanagers.uwbundle.calib import CalibCamera as CalibCamera
@@ -43,8 +45,6 @@ from uw3dgs.datamanagers.uwbundle.calib import write_calib as write_calib
 from uw3dgs.datamanagers.uwbundle.geometry import apply_similarity as apply_similarity
 from uw3dgs.datamanagers.uwbundle.geometry import distance_to_ground_truth as distance_to_ground_truth
 from uw3dgs.datamanagers.uwbundle.geometry import umeyama as umeyama
-from uw3dgs.datamanagers.uwbundle.ply import read_ply_points
-from uw3dgs.datamanagers.uwbundle.ply import write_ply_points as write_ply_points
 from uw3dgs.registry import DataManagerSpec
 from uw3dgs.utils.console import info, warn
 from uw3dgs.utils.images import image_size

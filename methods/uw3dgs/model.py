@@ -355,6 +355,21 @@ class UW3DGSModel(GaussianSplattingModel):
         pus = outputs["pus"].detach()
         return pus if picked is None else pus[picked]
 
+    def eval_report(self, notes: dict[str, dict]) -> dict[str, Any]:
+        """'water': the water verdict made before training (`notes['water']`) and again on the learned medium over
+        the same ranges, both printed; nothing for a run without that note."""
+        before = notes.get("water")
+        if not isinstance(before, dict):
+            return {}
+        info(f"water, before training: {before['line']}")
+        if before.get("collapsed"):
+            info("water: the model rendered without a medium (judged water-free before training): its URI is its UWI")
+            return {"water": {**before, "learned": None}}
+        learned = self.medium_summary()
+        verdict = water_verdict(learned["beta_d"], learned["beta_b"], before["far_range"], before["level"])
+        info(f"water, learned medium: {verdict.line()}")
+        return {"water": {**before, "learned": verdict.to_json()}}
+
     def medium_summary(self) -> dict[str, Tensor]:
         """Learned B_inf and the mean of beta_D, beta_B over the Gaussian centres (per channel); zeros for a scene
         judged water-free (the model renders no medium there)."""

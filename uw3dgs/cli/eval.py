@@ -62,24 +62,6 @@ def run_notes(run_dir: Path) -> dict[str, object]:
     return {path.stem: json.loads(path.read_text()) for path in sorted((run_dir / NOTES_DIR).glob("*.json"))}
 
 
-def learned_water(model: object, notes: dict) -> dict | None:
-    """The water verdict again, on the learned medium over the ranges judged before training (`notes['water']`,
-    fields/water_verdict.py), printed with the one made before training; None for a run without that note."""
-    from uw3dgs.fields.water_verdict import water_verdict
-
-    before = notes.get("water")
-    if not isinstance(before, dict):
-        return None
-    info(f"water, before training: {before['line']}")
-    if before.get("collapsed"):
-        info("water: the model rendered without a medium (judged water-free before training): its URI is its UWI")
-        return {**before, "learned": None}
-    learned = model.medium_summary()
-    verdict = water_verdict(learned["beta_d"], learned["beta_b"], before["far_range"], before["level"])
-    info(f"water, learned medium: {verdict.line()}")
-    return {**before, "learned": verdict.to_json()}
-
-
 def run_eval(args: EvalArgs, progress: bool = True) -> dict:
     from uw3dgs.engine.evaluator import evaluate_views, load_trained
     from uw3dgs.engine.run_identity import DATA_KEY, data_record
@@ -109,9 +91,7 @@ def run_eval(args: EvalArgs, progress: bool = True) -> dict:
     data = {"experiment_name": config.experiment_name or datamanager.scene_name, "method_name": config.method_name,
             "checkpoint": str(checkpoint), "results": summary, DATA_KEY: data_record(config, datamanager),
             "per_image": result["per_image"], "notes": notes}
-    water = learned_water(model, notes)
-    if water is not None:
-        data["water"] = water
+    data.update(model.eval_report(notes))
     write_json(output, data)
     data["output_path"] = str(output)
     return data

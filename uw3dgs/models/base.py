@@ -155,6 +155,11 @@ class Model(nn.Module):
         `samples` points per axis for one that varies in space); None for a method without one. Default: None."""
         return None
 
+    def eval_report(self, notes: dict[str, dict]) -> dict[str, Any]:
+        """Entries `uw-eval` adds to its JSON (and may print), given the run's notes (`run_notes`), e.g. a judgement
+        made before training made again on the trained model. Default: none."""
+        return {}
+
     def state_keys_resized_in_training(self) -> set[str]:
         """state_dict keys whose first dimension changes during training (density control changes the number of
         Gaussians); `--resume` compares every other shape with the checkpoint's exactly. Default: none."""
