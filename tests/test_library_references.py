@@ -13,9 +13,9 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from skimage.transform import downscale_local_mean
 
 from uw3dgs.data.downscale import area_downscale
+from uw3dgs.kernels import build as kernel_build
 from uw3dgs.metrics.image import SSIM_SIGMA, SSIM_WINDOW, _gaussian_blur, psnr, ssim, ssim_map
 from uw3dgs.metrics.underwater_quality import cielab
-from uw3dgs.render import cpu_backend
 
 RADIUS = SSIM_WINDOW // 2
 
@@ -65,7 +65,7 @@ def test_ssim_away_from_the_border_is_scikit_images_and_kornias():
 def test_ssim_of_images_in_a_black_frame_is_scikit_images_full_map(kernel):
     # within a black frame at least the window's radius wide, reflecting reads zeros as zero padding does: the
     # conventions meet over the whole image (scikit-image's full map, not its cropped mean)
-    if kernel == "compiled" and not cpu_backend.is_available():
+    if kernel == "compiled" and not kernel_build.is_available():
         pytest.skip("the compiled CPU kernels are not built here")
     pred, gt = pair(30, 26, seed=1, frame=RADIUS)
     _, full = skimage_ssim(pred, gt)
