@@ -47,7 +47,8 @@ class Output:
 OUTPUTS: dict[str, Output] = {
     "uwi": Output("UWI", "rgb", "the rendered underwater image, the one the method is trained to match (every "
                                 "method; for 3dgs its only image)"),
-    "uri": Output("URI", "uri", "the water-free image (methods that model the water: uw3dgs and its ablations)"),
+    "uri": Output("URI", "uri", "the water-free image (methods that model the water: uw3dgs and its ablations, "
+                                "seasplat)"),
     "depth": Output("range", "range", "the distance along each pixel's ray, turbo colours from near (red) to far "
                                       "(blue) on one scale for all frames; empty pixels black"),
     "attenuation": Output("attenuation", "attenuation", "the direct signal's transmission exp(-beta_D z) (methods "
