@@ -60,9 +60,10 @@ def entrypoint(argv: list[str] | None = None) -> None:
     from uw3dgs.engine.signals import sigterm_as_interrupt
 
     viewer = report_user_errors(lambda: start_viewer(args))
-    Console().print(f"viewer at {viewer.url} (Ctrl-C to stop)", soft_wrap=True, highlight=False)
     try:
-        with sigterm_as_interrupt():  # after loading the run (pycolmap installs its own SIGTERM handler)
+        # after loading the run (pycolmap installs its own SIGTERM handler), before the address is announced
+        with sigterm_as_interrupt():
+            Console().print(f"viewer at {viewer.url} (Ctrl-C to stop)", soft_wrap=True, highlight=False)
             viewer.serve_forever()
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the usual ways to stop a server
         Console().print("Stopped.")
