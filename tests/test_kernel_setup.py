@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.render import cpu_backend
+from uw3dgs.kernels import build
 
 DELAY = 1.0
 """A stand-in for a first compile, added to the first call of the kernel loader."""
@@ -14,7 +14,7 @@ DELAY = 1.0
 
 def test_the_kernels_are_ready_before_the_clock_starts(make_config, monkeypatch):
     calls: list[float] = []
-    original = cpu_backend.load_extension
+    original = build.load_extension
 
     def slow_first(*args, **kwargs):
         if not calls:
@@ -22,7 +22,7 @@ def test_the_kernels_are_ready_before_the_clock_starts(make_config, monkeypatch)
         calls.append(time.perf_counter())
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(cpu_backend, "load_extension", slow_first)
+    monkeypatch.setattr(build, "load_extension", slow_first)
     trainer = Trainer(make_config(steps=2))
     trainer.setup()
     assert len(calls) == 1 and trainer.kernel_seconds >= DELAY

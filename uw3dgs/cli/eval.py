@@ -62,8 +62,8 @@ def run_notes(run_dir: Path) -> dict[str, object]:
 
 def learned_water(model: object, notes: dict) -> dict | None:
     """The water verdict again, on the learned medium over the ranges judged before training (`notes['water']`,
-    fields/water_verdict.py), printed with the one made before training; None for a run without that note."""
-    from uw3dgs.fields.water_verdict import water_verdict
+    uw3dgs/medium/water_verdict.py), printed with the one made before training; None for a run without that note."""
+    from uw3dgs.medium.water_verdict import water_verdict
 
     before = notes.get("water")
     if not isinstance(before, dict):
