@@ -6,7 +6,7 @@
 
 Poses are converted to uw3dgs' OpenCV convention, OPENCV cameras undistorted, images downscaled once into the
 image cache (all through `uw3dgs.data.colmap_dataset`), and the scene normalised unless
-`--datamanager.no-normalize`. See `uw3dgs.data.transforms_json` for the file format and docs/datasets.md.
+`--datamanager.no-normalize`. See `uw3dgs.datamanagers.transforms_json` for the file format and docs/datasets.md.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from uw3dgs.data.colmap_dataset import normalize_scene, scene_from_model
 from uw3dgs.data.datamanager import DataManagerConfig
 from uw3dgs.data.dataparser import DataParser
 from uw3dgs.data.scene import SceneData
-from uw3dgs.data.transforms_json import TRANSFORMS_FILE, random_points, read_transforms
+from uw3dgs.datamanagers.transforms_json import TRANSFORMS_FILE, random_points, read_transforms
 from uw3dgs.options import check_number
 from uw3dgs.registry import DataManagerSpec
 from uw3dgs.utils.console import warn

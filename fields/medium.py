@@ -99,7 +99,7 @@ class MediumFieldConfig(InstantiateConfig):
     identifiability: IdentifiabilityConfig = field(default_factory=IdentifiabilityConfig)
     """The report's thresholds."""
     no_water_level: float = 0.25
-    """'estimate' judges whether there is water at all (fields/water_verdict.py): little or no water when the
+    """'estimate' judges whether there is water at all (uw3dgs/medium/water_verdict.py): little or no water when the
     optical depths beta_D*z and beta_B*z at the far end of the ranges stay below this in every channel (the water
     then changes no pixel by more than about this share)."""
     collapse_without_water: bool = True

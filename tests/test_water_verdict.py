@@ -16,7 +16,7 @@ from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.engine.evaluator import PANEL_LABELS, evaluate_views
 from uw3dgs.engine.run_folder import shape_mismatch
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.fields.water_verdict import far_range, water_verdict
+from uw3dgs.medium.water_verdict import far_range, water_verdict
 from uw3dgs.methods.uw3dgs import method as uw3dgs_method
 from uw3dgs.utils.images import read_image
 

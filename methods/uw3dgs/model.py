@@ -24,8 +24,8 @@ from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
-from uw3dgs.fields.water_verdict import WaterVerdict, far_range, water_verdict
 from uw3dgs.medium.formation import Water, form_underwater_image, form_with_water
+from uw3dgs.medium.water_verdict import WaterVerdict, far_range, water_verdict
 from uw3dgs.methods.gaussian_splatting import (
     COVERAGE_EPS,
     GaussianSplattingModel,

@@ -69,13 +69,16 @@ def resolve_device(name: str) -> torch.device:
 
 def prepare_kernels(model_config: Any, device: torch.device) -> float:
     """Build (first use) or load the compiled CPU kernels now, before the training clock starts, when the run will
-    use them (CPU, the compiled rasterizer); returns the seconds it took (0 when not used). `train_seconds` then
-    counts training only, not a first compile (docs/training.md, "The run folder")."""
+    use them (on the CPU, with `--model.kernels compiled` or the compiled rasterizer); returns the seconds it took (0
+    when not used). `train_seconds` then counts training only, not a first compile (docs/training.md, "The run
+    folder")."""
     from uw3dgs.kernels import build
     from uw3dgs.render.rasterize import select_backend
 
     raster = getattr(model_config, "raster", None)
-    if device.type != "cpu" or raster is None or select_backend(raster.backend, device) != "cpu":
+    compiled = getattr(model_config, "kernels", None) == "compiled" or (
+        raster is not None and select_backend(raster.backend, device) == "cpu")
+    if device.type != "cpu" or not compiled:
         return 0.0
     start = time.perf_counter()
     build.load_extension()

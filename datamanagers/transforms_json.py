@@ -38,6 +38,7 @@ import numpy as np
 import pycolmap
 
 from uw3dgs.data.colmap_dataset import ColmapModel, DatasetError
+from uw3dgs.data.ply import read_ply_vertices
 from uw3dgs.utils.images import image_size
 
 TRANSFORMS_FILE = "transforms.json"
@@ -159,8 +160,6 @@ def read_transforms(root: Path) -> TransformsScene:
 
 def read_points(root: Path, meta: dict, path: Path) -> tuple[np.ndarray, np.ndarray]:
     """([P, 3] float64, [P, 3] uint8) from `ply_file_path` (grey without red/green/blue); empty without one."""
-    from uw3dgs.data.ply import read_ply_vertices
-
     if not meta.get("ply_file_path"):
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
     ply = root / meta["ply_file_path"]
