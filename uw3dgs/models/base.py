@@ -76,6 +76,15 @@ class Model(nn.Module):
         """Render one view. Must contain 'rgb' [H, W, 3], the image compared with the dataset's."""
         raise NotImplementedError
 
+    def rays_per_batch(self) -> int | None:
+        """None (the default): each training step gets one view (`DataManager.next_train`); a number: that many random
+        rays across the training views (`DataManager.next_train_rays`, ray-marching methods)."""
+        return None
+
+    def get_train_outputs(self, batch: Batch) -> dict[str, Any]:
+        """What a training step renders for `batch`. Default: `get_outputs` of the batch's view."""
+        return self.get_outputs(batch["camera"])
+
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         """Weighted loss terms; the Trainer back-propagates their sum."""
         raise NotImplementedError
@@ -169,6 +178,11 @@ class Model(nn.Module):
         """state_dict entries a checkpoint written before they existed lacks, with the value that means what such a
         run did (`--resume` and `uw-eval` then take it). Default: none."""
         return {}
+
+    def state_keys_reshaped_in_training(self) -> set[str]:
+        """state_dict keys whose whole shape (not their number of dimensions) changes during training (a grid that
+        grows); `--resume` leaves their shapes to `load_checkpoint_state`. Default: none."""
+        return set()
 
     def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
         """Load weights saved by `state_dict()` (override when parameter shapes change in training); entries of
