@@ -30,8 +30,7 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.methods.tensorf import TensoRFModel, TensoRFModelConfig, tensorf_optimizers
-from uw3dgs.metrics.image import psnr, ssim
-from uw3dgs.metrics.lpips import lpips_metrics
+from uw3dgs.models.base import restored_image_metrics
 from uw3dgs.options import check_number
 from uw3dgs.raymarch.compositing import composite_underwater
 from uw3dgs.raymarch.rays import RayBundle
@@ -162,15 +161,7 @@ class SeaThruNeRFModel(TensoRFModel):
         return metrics
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
-        metrics = super().get_eval_metrics(outputs, batch)
-        if "clean_image" in batch:
-            uri = outputs["uri"].detach().clamp(0, 1)
-            metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
-            metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
-            metrics.update(lpips_metrics(uri, batch["clean_image"], prefix="uri_"))
-            if "covisible" in batch:
-                metrics["uri_psnr_covisible"] = float(psnr(uri, batch["clean_image"], batch["covisible"]))
-        return metrics
+        return {**super().get_eval_metrics(outputs, batch), **restored_image_metrics(outputs["uri"], batch)}
 
     @torch.no_grad()
     def medium_over_views(self, cameras: list[Camera]) -> dict[str, Tensor]:
