@@ -178,6 +178,21 @@ def test_occupancy_grid_never_skips_a_sample_above_its_threshold(activation):
     assert bool(occupied[dense].all())
 
 
+def test_occupied_bounds_are_the_extreme_occupied_vertices():
+    grid = OccupancyGrid(torch.tensor([0.0, -1.0, 2.0]), torch.tensor([4.0, 1.0, 3.0]))
+    grid.build(lambda x: ((x[:, 0] - 1.0).abs() < 0.1).double() + (x[:, 1] > 0.6).double() * (x[:, 2] < 2.3),
+               grid.lo, grid.hi, (5, 11, 6), step=1.0, threshold=0.5, dilation=1)
+    lo, hi = grid.occupied_bounds()
+    # x = 1 occupied everywhere in y, z; y > 0.6 only where z < 2.3: the vertices x in {1}, y in [-1, 1], z in [2, 3]
+    torch.testing.assert_close(lo, torch.tensor([0.0, -1.0, 2.0]))
+    torch.testing.assert_close(hi, torch.tensor([4.0, 1.0, 3.0]))
+    plane = OccupancyGrid(grid.lo, grid.hi)
+    plane.build(lambda x: ((x[:, 0] - 1.0).abs() < 0.1).double(), grid.lo, grid.hi, (5, 11, 6), 1.0, 0.5, dilation=1)
+    lo, hi = plane.occupied_bounds()
+    torch.testing.assert_close(lo, torch.tensor([1.0, -1.0, 2.0]))
+    torch.testing.assert_close(hi, torch.tensor([1.0, 1.0, 3.0]))
+
+
 # ----------------------------------------------------------------------------------------------------
 # Rays
 

@@ -65,9 +65,14 @@ class OccupancyGrid(nn.Module):
         """(lo [3], hi [3]) of the occupied vertices, None if none is."""
         if not self.built or not bool(self.volume.any()):
             return None
-        z, y, x = (torch.arange(n, device=self.volume.device) for n in self.volume.shape)
-        idx = torch.stack(torch.meshgrid(x, y, z, indexing="ij"), dim=-1)[self.volume.permute(2, 1, 0) > 0]
-        size = torch.tensor(self.volume.shape[::-1], device=idx.device) - 1
-        frac = idx.float() / size.clamp_min(1).float()
-        pts = self.lo + frac * (self.hi - self.lo)
-        return pts.amin(0), pts.amax(0)
+        occupied = self.volume.permute(2, 1, 0) > 0  # [X, Y, Z]
+        first, last = [], []
+        for axis in range(3):
+            others = tuple(a for a in range(3) if a != axis)
+            hit = torch.nonzero(occupied.any(dim=others)).flatten()
+            size = max(occupied.shape[axis] - 1, 1)
+            first.append(float(hit[0]) / size)
+            last.append(float(hit[-1]) / size)
+        span = self.hi - self.lo
+        first_t, last_t = (torch.tensor(v, device=span.device) for v in (first, last))
+        return self.lo + first_t * span, self.lo + last_t * span
