@@ -118,22 +118,19 @@ class SeaThruNeRFModel(TensoRFModel):
     def render_rays(self, rays: RayBundle) -> dict[str, Tensor]:
         """Per ray: 'rgb' [R, 3] the underwater colour, 'uri' [R, 3] the restored one, 'attenuation' [R, 3] the
         direct term, 'backscatter' [R, 3], 'alpha' [R], 'range' [R] (world units), 'trans' [R, S] the object's
-        transmittance at each sample (the accuracy loss), and the ray's medium 'c_med', 'sigma_bs', 'sigma_attn'
-        [R, 3] (per dataset unit)."""
+        transmittance at each sample (the accuracy loss; in training mode only), and the ray's medium 'c_med',
+        'sigma_bs', 'sigma_attn' [R, 3] (per dataset unit)."""
         marched = self.march(rays)
         medium = self.medium(rays.directions)
         ranges = marched["samples"].ranges.detach()
         water = composite_underwater(marched["weights"], marched["trans"], marched["rgb"], ranges * self.dataset_scale,
                                      medium["sigma_attn"], medium["sigma_bs"], medium["c_med"])
         acc = marched["weights"].sum(-1)
-        return {"rgb": water.rgb, "uri": water.restored, "attenuation": water.direct,
-                "backscatter": water.backscatter, "alpha": acc,
-                "range": self.expected_range(marched["weights"], ranges, acc.detach()),
-                "trans": marched["trans"], **medium}
-
-    def get_outputs(self, camera: Camera) -> dict[str, Any]:
-        out = super().get_outputs(camera)
-        out.pop("trans")  # per sample: only the training loss reads it
+        out = {"rgb": water.rgb, "uri": water.restored, "attenuation": water.direct,
+               "backscatter": water.backscatter, "alpha": acc,
+               "range": self.expected_range(marched["weights"], ranges, acc.detach()), **medium}
+        if self.training:  # per sample: only the training loss reads it
+            out["trans"] = marched["trans"]
         return out
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:

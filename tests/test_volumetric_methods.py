@@ -14,6 +14,7 @@ from conftest import run_command, train, train_until_killed
 from uw3dgs.cli.eval import EvalArgs, run_eval
 from uw3dgs.cli.export import entrypoint as export_entrypoint
 from uw3dgs.cli.render import entrypoint as render_entrypoint
+from uw3dgs.cli.viewer import entrypoint as viewer_entrypoint
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.trainer import Trainer
@@ -68,3 +69,5 @@ def test_a_short_run_trains_resumes_bit_exact_evaluates_and_renders(method, tmp_
     code, stdout = run_command(export_entrypoint, [str(full.run_dir / "config.yml"), "--output",
                                                    str(tmp_path / "scene.ply")], capsys)[:2]
     assert code != 0 and "has no PLY" in stdout and len(stdout.strip().splitlines()) == 1
+    code, stdout = run_command(viewer_entrypoint, [str(full.run_dir / "config.yml"), "--port", "7391"], capsys)[:2]
+    assert code != 0 and "uw-render" in stdout and len(stdout.strip().splitlines()) == 1
