@@ -68,6 +68,6 @@ def test_a_short_run_trains_resumes_bit_exact_evaluates_and_renders(method, tmp_
 
     code, stdout = run_command(export_entrypoint, [str(full.run_dir / "config.yml"), "--output",
                                                    str(tmp_path / "scene.ply")], capsys)[:2]
-    assert code != 0 and "has no PLY" in stdout and len(stdout.strip().splitlines()) == 1
+    assert code != 0 and "no Gaussians to export as a PLY" in stdout and len(stdout.strip().splitlines()) == 1
     code, stdout = run_command(viewer_entrypoint, [str(full.run_dir / "config.yml"), "--port", "7391"], capsys)[:2]
     assert code != 0 and "uw-render" in stdout and len(stdout.strip().splitlines()) == 1

@@ -52,9 +52,6 @@ def run_export(args: ExportArgs) -> tuple[Path, Path | None, int]:
         raise ValueError(f"--medium-samples must be at least 2, got {args.medium_samples}")
     _, datamanager, model, checkpoint = load_trained(args.load_config, "cpu", step=args.step)
     gaussians = getattr(model, "gaussians", None)
-    if gaussians is None and model.rays_per_batch() is not None:
-        raise ValueError(f"{args.load_config}: a ray-marched radiance field has no PLY (uw-export writes 3DGS "
-                         "Gaussians); render its views with uw-render or measure them with uw-eval")
     if gaussians is None:
         raise ValueError(f"{args.load_config}: a {type(model).__name__} has no Gaussians to export as a PLY; render "
                          "it with uw-render instead")
