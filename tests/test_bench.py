@@ -220,12 +220,12 @@ def test_the_ray_executor_gives_the_table_of_the_local_one(killed_and_resumed, t
 
 
 @pytest.mark.parametrize("preset, cells", [
-    ("demo", 2), ("paper-table1", 72), ("paper-ablation", 60),
+    ("demo", 2), ("paper-table1", 108), ("paper-ablation", 60), ("volumetric-iui3", 12),
     *(pytest.param(name, cells, marks=pytest.mark.slow) for name, cells in (  # the grids behind docs/results.md
         ("iui3-redsea-x8", 9), ("synthetic-6k", 10), ("synthetic-15k-paup", 6), ("synthetic-marine-snow", 2),
         ("paup-enhanced-every", 9)))])
 def test_presets_expand_and_every_cell_parses(preset, cells, tmp_path):
-    if preset.startswith(("paper-", "iui3-")):
+    if preset.startswith(("paper-", "iui3-", "volumetric-")):
         if not SHARED_SCENE.is_dir():
             pytest.skip(f"{SHARED_SCENE} not found (the shared data beside the repository)")
         for scene in ("IUI3-RedSea", "Curasao", "JapaneseGradens-RedSea", "Panama"):  # stand-ins for the scenes
@@ -236,3 +236,20 @@ def test_presets_expand_and_every_cell_parses(preset, cells, tmp_path):
     assert run.returncode == 0, run.stdout + run.stderr
     assert f"{cells} cells in {tmp_path / 'out'}: {cells} new" in run.stderr
     assert run.stdout.count("uw-train ") == cells
+
+
+def test_method_args_follow_the_grids_args_and_win(tmp_path):
+    from uw3dgs.cli.train import parse_config
+
+    grid = load_grid(write(tmp_path / "g.yaml", """
+methods: [3dgs, tensorf]
+datasets: {synth: {}}
+seeds: [0]
+args: [--max-num-iterations, 100]
+method_args: {tensorf: [--max-num-iterations, 250]}
+"""))
+    steps = {cell.method: parse_config(list(cell.argv)).max_num_iterations for cell in grid.cells()}
+    assert steps == {"3dgs": 100, "tensorf": 250}
+    with pytest.raises(GridError, match="method_args"):
+        load_grid(write(tmp_path / "bad.yaml", "methods: [3dgs]\ndatasets: {s: {}}\nseeds: [0]\n"
+                                               "method_args: {tensorf: [--seed, 1]}\n"))

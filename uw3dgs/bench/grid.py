@@ -9,6 +9,8 @@
       IUI3-RedSea: {data: IUI3-RedSea, args: [--downscale-factor, 8]}
     seeds: [0, 1, 2]
     args: [--max-num-iterations, 6000]    # every cell's uw-train flags
+    method_args:                          # optional: method -> flags after `args` (so they win), e.g. its own length
+      tensorf: [--max-num-iterations, 25000]
     variants:                             # optional: name -> extra flags; each is one more row per method
       paup-attenuation: [--model.paup.attenuation-weight, 1]
     metrics: [psnr, ssim, lpips_alex]     # optional: the table's columns (default: uw-eval table's)
@@ -28,7 +30,7 @@ from typing import Any
 
 from uw3dgs.utils.safe_yaml import YamlFileError, load_yaml
 
-GRID_KEYS = {"output_dir", "data_root", "methods", "datasets", "seeds", "args", "variants", "metrics"}
+GRID_KEYS = {"output_dir", "data_root", "methods", "datasets", "seeds", "args", "method_args", "variants", "metrics"}
 DATASET_KEYS = {"data", "datamanager", "args"}
 DATAMANAGER_FLAG = "--datamanager."
 
@@ -79,6 +81,7 @@ class Grid:
     datasets: tuple[Dataset, ...]
     seeds: tuple[int, ...]
     args: tuple[str, ...] = ()
+    method_args: dict[str, tuple[str, ...]] = field(default_factory=dict)
     variants: dict[str, tuple[str, ...]] = field(default_factory=lambda: {"": ()})
     metrics: tuple[str, ...] | None = None
 
@@ -90,8 +93,8 @@ class Grid:
             folder = f"{variant}-s{seed}" if variant else f"s{seed}"
             run_dir = self.output_dir / dataset.name / method / folder
             out.append(Cell(dataset.name, method, variant, seed, run_dir,
-                            train_argv(method, dataset, (*self.args, *dataset.args, *flags), seed, self.output_dir,
-                                       folder)))
+                            train_argv(method, dataset, (*self.args, *self.method_args.get(method, ()),
+                                                         *dataset.args, *flags), seed, self.output_dir, folder)))
         return out
 
 
@@ -231,6 +234,9 @@ def load_grid(path: Path, data_root: Path | None = None, output_dir: Path | None
     if not isinstance(variants, dict):
         raise GridError(f"{path}: `variants` must be a mapping of name -> flags, got {variants!r}")
     variants = {_folder_name(k, "variant", path): _flags(v, f"variant {k!r}", path) for k, v in variants.items()}
+    method_args = raw.get("method_args") or {}
+    if not isinstance(method_args, dict) or set(method_args) - set(raw["methods"] or ()):
+        raise GridError(f"{path}: `method_args` must map methods of `methods` to flags, got {method_args!r}")
     metrics = raw.get("metrics")
     return Grid(
         path=path,
@@ -239,6 +245,7 @@ def load_grid(path: Path, data_root: Path | None = None, output_dir: Path | None
         datasets=tuple(_dataset(k, v, root, path) for k, v in datasets.items()),
         seeds=_seeds(raw["seeds"], path),
         args=_flags(raw.get("args"), "`args`", path),
+        method_args={m: _flags(v, f"method_args {m!r}", path) for m, v in method_args.items()},
         variants=variants or {"": ()},
         metrics=None if metrics is None else _names(metrics, "metrics", path, str),
     )

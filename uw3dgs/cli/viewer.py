@@ -45,6 +45,9 @@ def start_viewer(args: ViewerArgs):
     check_port(args.host, args.port)  # before loading the run, which may take long
     device = resolve_device(args.device)
     config, datamanager, model, checkpoint = load_trained(args.load_config, device, step=args.step)
+    if model.rays_per_batch() is not None:
+        raise ValueError(f"{args.load_config}: the viewer shows Gaussian models; render a ray-marched radiance field "
+                         f"({config.method_name}) with uw-render")
     model.eval()
     title = f"{config.experiment_name or datamanager.scene_name} / {config.method_name}"
     viewer = Viewer(model, views_from_datamanager(datamanager, images=args.camera_images), host=args.host,

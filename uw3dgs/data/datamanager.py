@@ -108,6 +108,9 @@ class DataManager:
         self._generator = torch.Generator().manual_seed(seed)
         self._queue: list[int] = []
         self._covisible: dict[int, torch.Tensor] = {}
+        self._seed = seed
+        self._rays: Any = None
+        """The `RayBatcher` of `next_train_rays`, made at its first call (views-only methods never have one)."""
 
     @property
     def scene_name(self) -> str:
@@ -126,6 +129,19 @@ class DataManager:
             self._queue = [self.train_indices[i] for i in order]
         return self.get_batch(self._queue.pop())
 
+    def next_train_rays(self, num_rays: int) -> Batch:
+        """`num_rays` random rays across the training views, for ray-marching methods (uw3dgs/raymarch/ray_batches.py):
+        'rays' (origins, unit directions, view indices), 'image' [N, 3] their pixels' colours, 'pixels' [N]; the
+        same images, cameras and split as `next_train`."""
+        return self._ray_batcher().next(num_rays)
+
+    def _ray_batcher(self) -> Any:
+        if self._rays is None:
+            from uw3dgs.raymarch.ray_batches import RayBatcher
+
+            self._rays = RayBatcher(self.images, self.cameras, self.train_indices, self._seed)
+        return self._rays
+
     def test_batches(self):
         """Test views; with ground-truth ranges also 'covisible' [H, W], the pixels whose surface some training
         view has in its field of view (`covisible_mask`): metrics over them leave out what no model can know."""
@@ -140,11 +156,16 @@ class DataManager:
 
     def state_dict(self) -> dict[str, Any]:
         """What a resumed run needs to draw the same views as an uninterrupted one."""
-        return {"generator": self._generator.get_state(), "queue": list(self._queue)}
+        state = {"generator": self._generator.get_state(), "queue": list(self._queue)}
+        if self._rays is not None:
+            state["rays"] = self._rays.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self._generator.set_state(state["generator"])
         self._queue = list(state["queue"])
+        if "rays" in state:
+            self._ray_batcher().load_state_dict(state["rays"])
 
 
 def check_scene(scene: SceneData, parser: str) -> None:

@@ -29,12 +29,15 @@ class ParamGroupConfig(CheckedConfig):
     """If set, the rate decays log-linearly from lr to lr_final (3DGS's position schedule); else constant."""
     decay_steps: int | None = None
     """Steps of the decay; None follows --max-num-iterations."""
+    betas: tuple[float, float] = (0.9, 0.999)
+    """Adam's moment decay rates (PyTorch's defaults)."""
 
     def check_options(self) -> None:
         check_number(self, "lr", ge=0)  # 0 freezes the group (e.g. the oracle medium of --model.medium.init truth)
         check_number(self, "eps", ge=0)
         check_number(self, "lr_final", gt=0, optional=True)
         check_number(self, "decay_steps", ge=1, integer=True, optional=True)
+        check_number(self, "betas", ge=0, lt=1, each=True)
         if self.lr_final is not None and self.lr == 0:
             raise OptionError("lr", "must be > 0 when lr_final is set (the rate decays from lr to lr_final on a "
                                     "log scale), got 0")
@@ -63,8 +66,14 @@ class Optimizers:
         self.max_num_iterations = max_num_iterations
         self.base_lr = {n: c.lr * (scene_extent if c.scale_by_scene_extent else 1.0) for n, c in configs.items()
                         if n in params}
-        self.optimizers = {n: torch.optim.Adam(p, lr=self.base_lr[n], eps=configs[n].eps, fused=_fusable(p))
-                           for n, p in params.items()}
+        self.optimizers = {n: self._adam(n, p) for n, p in params.items()}
+        self.schedule_origin: dict[str, int] = {}
+        """Per group, the step its decay restarted from (`restart`); 0 where it never did."""
+
+    def _adam(self, name: str, params: list[nn.Parameter]) -> torch.optim.Adam:
+        config = self.configs[name]
+        return torch.optim.Adam(params, lr=self.base_lr[name], eps=config.eps, betas=tuple(config.betas),
+                                fused=_fusable(params))
 
     def lr(self, name: str, step: int) -> float:
         config = self.configs[name]
@@ -72,7 +81,14 @@ class Optimizers:
             return self.base_lr[name]
         scale = self.base_lr[name] / config.lr
         steps = config.decay_steps or self.max_num_iterations
-        return exponential_decay(step, self.base_lr[name], config.lr_final * scale, steps)
+        return exponential_decay(step - self.schedule_origin.get(name, 0), self.base_lr[name],
+                                 config.lr_final * scale, steps)
+
+    def restart(self, name: str, params: list[nn.Parameter], step: int) -> None:
+        """A fresh Adam (no moments) for group `name` over `params`, its decay starting again after `step` (TensoRF
+        does so whenever its grids are resampled)."""
+        self.optimizers[name] = self._adam(name, params)
+        self.schedule_origin[name] = step
 
     def set_step(self, step: int) -> None:
         for name, opt in self.optimizers.items():

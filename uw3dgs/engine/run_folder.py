@@ -181,13 +181,17 @@ def state_problems(model: Any, saved: dict[str, torch.Tensor]) -> tuple[list[str
     top-level parts of the model (e.g. 'gaussians') they belong to."""
     saved, now = {**model.checkpoint_defaults(), **saved}, model.state_dict()
     free = set(model.state_keys_resized_in_training())
+    reshaped = set(getattr(model, "state_keys_reshaped_in_training", set)())
     problems, parts = [], []
     for key in dict.fromkeys([*saved, *now]):
         if key not in now or key not in saved:
             problems.append(f"{key} {'only in the checkpoint' if key not in now else 'not in the checkpoint'}")
         else:
             a, b = saved[key], now[key]
-            same = a.shape[1:] == b.shape[1:] and a.dim() == b.dim() if key in free else a.shape == b.shape
+            if key in reshaped:
+                same = a.dim() == b.dim()
+            else:
+                same = a.shape[1:] == b.shape[1:] and a.dim() == b.dim() if key in free else a.shape == b.shape
             if same:
                 continue
             problems.append(f"{key} {_shape(a, key in free)} in the checkpoint, {_shape(b, key in free)} now")

@@ -277,9 +277,10 @@ class Trainer:
         for cb in self.callbacks:
             cb.before_step(step)
         self.optimizers.set_step(step)
+        rays = self.model.rays_per_batch()
         with section("data"):
-            batch = self.datamanager.next_train()
-        outputs = self.model.get_outputs(batch["camera"])
+            batch = self.datamanager.next_train() if rays is None else self.datamanager.next_train_rays(rays)
+        outputs = self.model.get_train_outputs(batch)
         losses = self.model.get_loss_dict(outputs, batch, step)
         loss = sum(losses.values())
         if not math.isfinite(float(loss.detach())):

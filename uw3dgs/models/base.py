@@ -54,6 +54,19 @@ class ModelConfig(InstantiateConfig):
         return dataclasses.replace(self, **{selector: name, slot: field_spec(name, kind).config})
 
 
+def restored_image_metrics(uri: Tensor, batch: Batch) -> dict[str, float | None]:
+    """`uri_psnr`, `uri_ssim`, `uri_lpips_*` (and `uri_psnr_covisible` where the batch has 'covisible') of a restored
+    image `uri` [H, W, 3] against the batch's 'clean_image' (scenes that know it); {} without one."""
+    if "clean_image" not in batch:
+        return {}
+    uri, clean = uri.detach().clamp(0, 1), batch["clean_image"]
+    metrics: dict[str, float | None] = {"uri_psnr": float(psnr(uri, clean)), "uri_ssim": float(ssim(uri, clean))}
+    metrics.update(lpips_metrics(uri, clean, prefix="uri_"))
+    if "covisible" in batch:
+        metrics["uri_psnr_covisible"] = float(psnr(uri, clean, batch["covisible"]))
+    return metrics
+
+
 class Model(nn.Module):
     """A scene representation plus how it renders, what it is trained with and what it reports.
 
@@ -75,6 +88,15 @@ class Model(nn.Module):
     def get_outputs(self, camera: Camera) -> dict[str, Any]:
         """Render one view. Must contain 'rgb' [H, W, 3], the image compared with the dataset's."""
         raise NotImplementedError
+
+    def rays_per_batch(self) -> int | None:
+        """None (the default): each training step gets one view (`DataManager.next_train`); a number: that many random
+        rays across the training views (`DataManager.next_train_rays`, ray-marching methods)."""
+        return None
+
+    def get_train_outputs(self, batch: Batch) -> dict[str, Any]:
+        """What a training step renders for `batch`. Default: `get_outputs` of the batch's view."""
+        return self.get_outputs(batch["camera"])
 
     def get_loss_dict(self, outputs: dict[str, Any], batch: Batch, step: int) -> dict[str, Tensor]:
         """Weighted loss terms; the Trainer back-propagates their sum."""
@@ -169,6 +191,11 @@ class Model(nn.Module):
         """state_dict entries a checkpoint written before they existed lacks, with the value that means what such a
         run did (`--resume` and `uw-eval` then take it). Default: none."""
         return {}
+
+    def state_keys_reshaped_in_training(self) -> set[str]:
+        """state_dict keys whose whole shape (not their number of dimensions) changes during training (a grid that
+        grows); `--resume` leaves their shapes to `load_checkpoint_state`. Default: none."""
+        return set()
 
     def load_checkpoint_state(self, state: dict[str, Tensor]) -> None:
         """Load weights saved by `state_dict()` (override when parameter shapes change in training); entries of
