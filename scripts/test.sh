@@ -6,4 +6,11 @@ bash scripts/install.sh
 . .venv/bin/activate
 export MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_WAIT_POLICY=passive
 ruff check .
-python -m pytest -q -rs "$@"  # -rs: every skipped test is listed with its reason (e.g. no CUDA)
+# the unit suite first, then the end-to-end tests (tests/conftest.py marks them slow): each phase prints its own time.
+# -rs: every skipped test is listed with its reason (e.g. no CUDA)
+# (exit status 5, "no test selected", is fine for a phase: e.g. a file without slow tests)
+for phase in "not slow" "slow"; do
+  status=0
+  python -m pytest -q -rs -m "$phase" "$@" || status=$?
+  [ "$status" -eq 0 ] || [ "$status" -eq 5 ] || exit "$status"
+done
