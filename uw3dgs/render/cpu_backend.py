@@ -46,10 +46,10 @@ from uw3dgs.utils.console import info
 EXTENSION_NAME = "uw3dgs_cpu_rasterizer"
 SOURCES = [Path(__file__).parent / "csrc" / name
            for name in ("bindings.cpp", "cpu_rasterizer.cpp", "vm_field.cpp", "sh_colors.cpp", "floater_mlp.cpp",
-                        "ssim.cpp", "depth_consistency.cpp")]
+                        "ssim.cpp", "depth_consistency.cpp", "medium_compositing.cpp")]
 """The rasterizer, the medium's VM field read (fields/vm_kernel.py), the SH colours (render/sh_kernel.py), PAUP's
-phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py), UW-3DGS's L_z (metrics/depth_consistency.py)
-and their Python bindings: one module."""
+phi (paup/scorer.py), the D-SSIM loss's SSIM (metrics/ssim_kernel.py), UW-3DGS's L_z (metrics/depth_consistency.py),
+the medium compositor (render/medium_cpu.py) and their Python bindings: one module."""
 HEADERS = sorted((Path(__file__).parent / "csrc").glob("*.h"))
 """Headers the sources include (exp_f32.h, vector_io.h): part of the build's version, and of the wheel."""
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
