@@ -32,8 +32,7 @@ from uw3dgs.methods.gaussian_splatting import (
     gaussian_optimizers,
 )
 from uw3dgs.metrics.depth_consistency import depth_consistency
-from uw3dgs.metrics.image import psnr, ssim
-from uw3dgs.metrics.lpips import lpips_metrics
+from uw3dgs.metrics.medium import medium_eval_summary, restored_image_metrics
 from uw3dgs.options import check_number
 from uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
@@ -340,33 +339,17 @@ class UW3DGSModel(GaussianSplattingModel):
 
     def get_eval_metrics(self, outputs: dict[str, Any], batch: Batch) -> dict[str, float | None]:
         metrics = super().get_eval_metrics(outputs, batch)
-        if "clean_image" in batch and self.medium is not None:
-            uri = outputs["uri"].detach().clamp(0, 1)
-            metrics["uri_psnr"] = float(psnr(uri, batch["clean_image"]))
-            metrics["uri_ssim"] = float(ssim(uri, batch["clean_image"]))
-            metrics.update(lpips_metrics(uri, batch["clean_image"], prefix="uri_"))
-            if "covisible" in batch:
-                metrics["uri_psnr_covisible"] = float(psnr(uri, batch["clean_image"], batch["covisible"]))
+        if self.medium is not None:
+            metrics.update(restored_image_metrics(outputs["uri"], batch))
         return metrics
 
     def get_eval_summary(self, scene: SceneData) -> dict[str, float | None]:
         """3DGS's (the floater ratios), PAUP's `pruned_share` (Gaussians it removed over the run / all ever created),
         the learned medium and its error against the ground truth (synthetic scenes), relative, per channel."""
-        learned = self.medium_summary()
         out: dict[str, float | None] = dict(super().get_eval_summary(scene))
         if self.paup is not None:
             out["pruned_share"] = self.paup.pruned_share
-        for name, value in learned.items():
-            for channel, v in zip("rgb", value.tolist(), strict=True):
-                out[f"{name}_{channel}"] = v
-        if scene.gt is None or not learned:
-            return out
-        truths = dict(zip(("beta_d", "beta_b", "b_inf"), scene.gt.medium_tensors(), strict=True))
-        for name in ("b_inf", "beta_d", "beta_b"):
-            truth = truths[name]
-            rel = ((learned[name].cpu() - truth).abs() / truth.abs().clamp_min(1e-6))
-            out[f"{name}_rel_error"] = float(rel.max())
-        return out
+        return {**out, **medium_eval_summary(self.medium_summary(), scene)}
 
     def get_image_dict(self, outputs: dict[str, Any], batch: Batch) -> dict[str, Tensor]:
         images = {"gt": batch["image"], "uwi": outputs["rgb"].clamp(0, 1), "uri": outputs["uri"].clamp(0, 1),
