@@ -190,8 +190,9 @@ def test_viewing_and_export_interface():
 @pytest.mark.slow
 def test_short_run_trains_evaluates_exports_renders(tmp_path, cache_dir, tiny_scene_config, capsys, monkeypatch):
     """30 steps on the tiny synthetic scene with every schedule shrunk (quarter resolution first, densification,
-    an opacity reset, the late cull): uw-eval reports the UWI, the URI and the water with its errors; uw-export writes
-    the PLY; uw-render the test views' UWI, URI and range."""
+    an opacity reset, the late cull; culls at 0.02: 5 steps cannot raise an opacity from 0.1 to 0.5): uw-eval
+    reports the UWI, the URI and the water with its errors; uw-export writes the PLY; uw-render the test views'
+    UWI, URI and range."""
     import json
 
     from conftest import run_command, tiny_train_config, train
@@ -205,7 +206,7 @@ def test_short_run_trains_evaluates_exports_renders(tmp_path, cache_dir, tiny_sc
     model = dataclasses.replace(
         spec.model, resolution_schedule=10,
         densification=dataclasses.replace(spec.model.densification, refine_start=5, refine_every=5, refine_stop=15,
-                                          reset_opacity_every=10),
+                                          reset_opacity_every=10, min_opacity=0.02, late_min_opacity=0.02),
         gaussians=dataclasses.replace(spec.model.gaussians, sh_degree_interval=10))
     base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=30)
     config = dataclasses.replace(base, method_name="watersplatting", model=model, optimizers=spec.optimizers,
@@ -216,7 +217,7 @@ def test_short_run_trains_evaluates_exports_renders(tmp_path, cache_dir, tiny_sc
 
     code, out, err = run_command(eval_entrypoint, [str(run)], capsys)
     assert code == 0, out + err
-    summary = json.loads((trainer.run_dir / "eval" / "results.json").read_text())["summary"]
+    summary = json.loads((trainer.run_dir / "eval" / "results.json").read_text())["results"]
     for key in ("psnr", "uri_psnr", "beta_d_r", "beta_b_g", "b_inf_b", "beta_d_rel_error", "b_inf_rel_error"):
         assert summary[key] is not None and math.isfinite(summary[key]), key
     assert summary["psnr"] > 10
