@@ -2,6 +2,11 @@
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 python benchmarks/speed/rasterizer.py
     python benchmarks/speed/rasterizer.py --device cuda      # gsplat against the reference on a GPU
+    python benchmarks/speed/rasterizer.py --backends cpu,medium-torch,medium-cpu   # with the medium compositor
+
+`medium-cpu` and `medium-torch` are the medium compositor (watersplatting's water between the Gaussians,
+`uw3dgs.render.medium_rasterize`) on its compiled and reference backends, with a smoothly varying water per pixel;
+their loss weighs the underwater image.
 
 Every (backend, Gaussians, resolution, pass) runs in its own subprocess: the peak memory is the growth
 of that process's max RSS (`resource.getrusage`) over its state just before the first render (scene
@@ -53,9 +58,23 @@ def make_scene(n: int, size: int, seed: int = 0):
     return (means, quats, scales, opacities, features), Camera(viewmat=torch.eye(4), K=K, width=size, height=size)
 
 
+def water(size: int, device: str):
+    """A smooth per-pixel water for the medium compositor: c_med, sigma_bs, sigma_attn [size, size, 3]."""
+    from uw3dgs.render.medium_types import PixelMedium
+
+    ramp = torch.linspace(0.5, 1.5, size)[None, :, None] * torch.linspace(1.2, 0.8, size)[:, None, None]
+    rgb = torch.tensor([0.1, 0.3, 0.4])
+    return PixelMedium(color=(rgb * ramp).to(device), sigma_bs=(0.1 * rgb * ramp).to(device),
+                       sigma_attn=(0.2 * rgb * ramp.flip(1)).to(device))
+
+
 def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str) -> dict:
     from uw3dgs.render import RasterSettings, rasterize
+    from uw3dgs.render.medium_rasterize import rasterize_medium
 
+    medium = None
+    if backend.startswith("medium-"):
+        backend, medium = backend.removeprefix("medium-"), water(size, device)
     if backend == "cpu":
         from uw3dgs.kernels.build import load_extension
 
@@ -69,15 +88,21 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str
     cuda = device == "cuda"
     sync = torch.cuda.synchronize if cuda else (lambda: None)
 
+    def render(*gaussians):
+        if medium is None:
+            return rasterize(*gaussians, camera, settings)
+        return rasterize_medium(*gaussians, medium, camera, settings, absgrad=mode != "fwd")
+
     def once() -> None:
         if mode == "fwd":
             with torch.no_grad():
-                rasterize(*inputs, camera, settings)
+                render(*inputs)
             return
         leaves = [t.clone().requires_grad_(True) for t in inputs]
-        out = rasterize(*leaves, camera, settings)
+        out = render(*leaves)
         out.means2d.retain_grad()
-        ((out.render * weights).sum() + out.alpha.sum()).backward()
+        image = out.render if medium is None else out.underwater
+        ((image * weights).sum() + out.alpha.sum()).backward()
 
     if cuda:
         sync()

@@ -31,6 +31,9 @@ class ParamGroupConfig(CheckedConfig):
     """Steps of the decay; None follows --max-num-iterations."""
     betas: tuple[float, float] = (0.9, 0.999)
     """Adam's moment decay rates (PyTorch's defaults)."""
+    max_grad_norm: float | None = None
+    """If set, the group's gradients are scaled down to at most this total norm before each step (nerfstudio's
+    max_norm); else left as they are."""
 
     def check_options(self) -> None:
         check_number(self, "lr", ge=0)  # 0 freezes the group (e.g. the oracle medium of --model.medium.init truth)
@@ -38,6 +41,7 @@ class ParamGroupConfig(CheckedConfig):
         check_number(self, "lr_final", gt=0, optional=True)
         check_number(self, "decay_steps", ge=1, integer=True, optional=True)
         check_number(self, "betas", ge=0, lt=1, each=True)
+        check_number(self, "max_grad_norm", gt=0, optional=True)
         if self.lr_final is not None and self.lr == 0:
             raise OptionError("lr", "must be > 0 when lr_final is set (the rate decays from lr to lr_final on a "
                                     "log scale), got 0")
@@ -101,7 +105,10 @@ class Optimizers:
 
     @section("Adam")
     def step(self) -> None:
-        for opt in self.optimizers.values():
+        for name, opt in self.optimizers.items():
+            max_norm = self.configs[name].max_grad_norm
+            if max_norm is not None:
+                torch.nn.utils.clip_grad_norm_([p for g in opt.param_groups for p in g["params"]], max_norm)
             opt.step()
 
     def state_dict(self) -> dict[str, Any]:

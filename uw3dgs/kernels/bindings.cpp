@@ -1,6 +1,7 @@
 // The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
 // (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp), PAUP's phi (floater_mlp.cpp), the D-SSIM loss's SSIM
-// (ssim.cpp) and UW-3DGS's L_z (depth_consistency.cpp), built together by uw3dgs/render/cpu_backend.py.
+// (ssim.cpp), UW-3DGS's L_z (depth_consistency.cpp) and the medium compositor (medium_compositing.cpp), built
+// together by uw3dgs/render/cpu_backend.py.
 #include <torch/extension.h>
 
 #include <vector>
@@ -64,6 +65,21 @@ std::vector<torch::Tensor> depth_consistency_forward(torch::Tensor radii, torch:
 std::vector<torch::Tensor> depth_consistency_backward(torch::Tensor means, torch::Tensor center, torch::Tensor ranges,
                                                       torch::Tensor gauss, torch::Tensor pixel, torch::Tensor coef,
                                                       double grad);
+std::vector<torch::Tensor> medium_composite_forward(torch::Tensor means2d, torch::Tensor conics,
+                                                    torch::Tensor opacities, torch::Tensor colors,
+                                                    torch::Tensor depths, torch::Tensor medium,
+                                                    torch::Tensor tile_starts, torch::Tensor tile_counts,
+                                                    torch::Tensor gauss_ids, int64_t width, int64_t height,
+                                                    int64_t tile, double alpha_min, double alpha_max, double t_min);
+std::vector<torch::Tensor> medium_composite_backward(torch::Tensor means2d, torch::Tensor conics,
+                                                     torch::Tensor opacities, torch::Tensor colors,
+                                                     torch::Tensor depths, torch::Tensor medium,
+                                                     torch::Tensor tile_starts, torch::Tensor tile_counts,
+                                                     torch::Tensor gauss_ids, int64_t width, int64_t height,
+                                                     int64_t tile, double alpha_min, double alpha_max, double t_min,
+                                                     torch::Tensor g_restored, torch::Tensor g_depth,
+                                                     torch::Tensor g_alpha, torch::Tensor g_object,
+                                                     torch::Tensor g_water);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward);
@@ -82,4 +98,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_backward", &ssim_backward);
   m.def("depth_consistency_forward", &depth_consistency_forward);
   m.def("depth_consistency_backward", &depth_consistency_backward);
+  m.def("medium_composite_forward", &medium_composite_forward);
+  m.def("medium_composite_backward", &medium_composite_backward);
 }

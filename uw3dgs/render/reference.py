@@ -279,18 +279,31 @@ def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) ->
     dL/dalpha_i = T_i g_i - S_i / (1 - alpha_i) with S_i = sum_{j > i} w_j g_j, and
     alpha_i = opacity_i exp(power_i) gives dL/dpower_i = alpha_i dL/dalpha_i (0 where clamped).
     """
-    alpha, dx, dy, params = ca.alpha, ca.dx, ca.dy, ca.params
-    blend = _blend(alpha, settings.transmittance_min)
+    blend = _blend(ca.alpha, settings.transmittance_min)
     weights = blend.weights
-    feats = params[..., _FEATS:]
+    feats = ca.params[..., _FEATS:]
     grad_feats = torch.bmm(grad_out, weights.flatten(1, 2)).transpose(1, 2)
 
-    weighted = torch.bmm(grad_out.transpose(1, 2), feats.transpose(1, 2)).view_as(alpha)
+    weighted = torch.bmm(grad_out.transpose(1, 2), feats.transpose(1, 2)).view_as(ca.alpha)
     weighted.mul_(weights)  # w_i g_i
+    return torch.cat([_geometry_grads(ca, blend, weighted, settings), grad_feats], dim=-1)
+
+
+def _geometry_grads(ca: _ChunkAlpha, blend: _Blend, weighted: Tensor, settings: RasterSettings,
+                    absgrad: Tensor | None = None) -> Tensor:
+    """[nt, K, 6] gradients of the packed rows' means2d, conic and opacity columns given `weighted` [nt, T, T, K] =
+    w_i g_i, g_i = dL/dw_i per pixel (consumed). `absgrad` [nt, K, 2], if given, receives the sum over pixels of
+    the per-pixel gradient's absolute value with respect to the mean (x, y)."""
+    alpha, dx, dy, params = ca.alpha, ca.dx, ca.dy, ca.params
     behind = torch.cumsum(weighted, dim=-1)
     behind = behind[..., -1:] - behind  # S_i
     grad_power = torch.addcdiv(weighted, behind.mul_(alpha), blend.transmit, value=-1.0)
     grad_power.mul_(_float_mask(torch.lt, alpha, settings.alpha_max))
+    a, b, c, opacity = params[..., 2:6].unbind(-1)
+    if absgrad is not None:  # per pixel: dL/dmean = dL/dpower (a dx + b dy, b dx + c dy)
+        for axis, (u, v) in enumerate(((a, b), (b, c))):
+            per_pixel = (u[:, None, None] * dx[:, None] + v[:, None, None] * dy[:, :, None]).mul_(grad_power)
+            absgrad[..., axis] = per_pixel.abs_().sum((1, 2))
 
     # Moments of dL/dpower over the tile's pixels, via separable row / column sums.
     per_col = grad_power.sum(1)  # [nt, T, K], summed over rows
@@ -302,10 +315,9 @@ def _chunk_grads(ca: _ChunkAlpha, grad_out: Tensor, settings: RasterSettings) ->
     s_dy2 = (per_row * dy * dy).sum(1)
     s_dxdy = (row_dx * dy).sum(1)
 
-    a, b, c, opacity = params[..., 2:6].unbind(-1)
     grad_opacity = per_col.sum(1) / opacity.clamp_min(torch.finfo(opacity.dtype).tiny)
     columns = (a * s_dx + b * s_dy, b * s_dx + c * s_dy, -0.5 * s_dx2, -s_dxdy, -0.5 * s_dy2, grad_opacity)
-    return torch.cat([torch.stack(columns, dim=-1), grad_feats], dim=-1)
+    return torch.stack(columns, dim=-1)
 
 
 def rasterize_reference(

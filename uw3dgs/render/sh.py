@@ -58,6 +58,11 @@ def _basis(degree: int, dirs: Tensor) -> list[Tensor]:
     return basis
 
 
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """The real SH basis up to `degree` at unit directions [..., 3]: [..., num_sh_bases(degree)] (an encoding)."""
+    return torch.stack(torch.broadcast_tensors(*_basis(degree, dirs)), dim=-1)
+
+
 def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
     """Evaluate SH coefficients [N, B, 3] (B >= num_sh_bases(degree)) along unit dirs [N, 3] -> [N, 3].
 

@@ -28,9 +28,9 @@ class DensityControl(TrainingCallback):
 
     @section("densification")
     def after_backward(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
-        camera = batch["camera"]
+        camera = outputs.get("camera", batch["camera"])  # the one rendered, where a method renders another size
         self.strategy.step_post_backward(self.state, step, outputs["means2d"], outputs["radii"],
-                                         (camera.width, camera.height))
+                                         (camera.width, camera.height), outputs.get("absgrad"))
 
     @section("densification")
     def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:

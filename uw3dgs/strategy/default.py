@@ -32,8 +32,14 @@ class DensificationConfig(CheckedConfig):
     """Last densification step (and opacity reset), at most half of --max-num-iterations; None = half
     (15k of 30k, as 3DGS). The cap keeps a shortened run's schedule sane: a method that pins 15,000 for its
     40,000 steps still stops at 3,000 in a 6,000-step run."""
+    refine_stop_share: float = 0.5
+    """The cap on refine_stop (and its default) as a share of --max-num-iterations: 0.5 is the half above."""
     grad_threshold: float = 0.0002
     """Average screen-space gradient (normalised device coordinates, as 3DGS) above which a Gaussian grows."""
+    absgrad: bool = False
+    """Grow by each view's per-pixel screen-space gradients summed in absolute value (AbsGS, WaterSplatting), not
+    by the gradient of the sum, whose per-pixel parts can cancel; grad_threshold then applies to that sum (about
+    4x 3DGS's 0.0002 is usual). Needs a renderer that reports them (`absgrad` of `step_post_backward`)."""
     percent_dense: float = 0.01
     """Gaussians larger than this fraction of the scene extent are split, smaller ones cloned."""
     split_samples: int = 2
@@ -44,23 +50,28 @@ class DensificationConfig(CheckedConfig):
     """Steps between opacity resets; 0 disables them."""
     reset_opacity_value: float = 0.01
     """Opacities are clamped down to this at a reset."""
-    prune_screen_size: float = 0.15
-    """After the first reset, prune Gaussians whose screen radius exceeded this fraction of the image."""
+    prune_screen_size: float | None = 0.15
+    """After the first reset, prune Gaussians whose screen radius exceeded this fraction of the image; None: never."""
     prune_world_size: float = 0.1
     """After the first reset, prune Gaussians larger than this fraction of the scene extent."""
+    late_min_opacity: float | None = None
+    """After the last densification event, prune Gaussians more transparent than this every refine_every steps
+    (WaterSplatting's post-densification cull); None: never (3DGS)."""
 
     def check_options(self) -> None:
         check_number(self, "refine_start", ge=0, integer=True)
         check_number(self, "refine_every", ge=1, integer=True)
         check_number(self, "refine_stop", ge=0, integer=True, optional=True)
+        check_number(self, "refine_stop_share", gt=0, le=1)
         check_number(self, "grad_threshold", ge=0)
         check_number(self, "percent_dense", gt=0)
         check_number(self, "split_samples", ge=1, integer=True)
         check_number(self, "min_opacity", ge=0, lt=1)
         check_number(self, "reset_opacity_every", ge=0, integer=True)
         check_number(self, "reset_opacity_value", gt=0, lt=1)
-        check_number(self, "prune_screen_size", gt=0)
+        check_number(self, "prune_screen_size", gt=0, optional=True)
         check_number(self, "prune_world_size", gt=0)
+        check_number(self, "late_min_opacity", ge=0, lt=1, optional=True)
 
 
 class DefaultStrategy:
@@ -69,8 +80,8 @@ class DefaultStrategy:
     def __init__(self, config: DensificationConfig, scene_extent: float, max_num_iterations: int):
         self.config = config
         self.scene_extent = scene_extent
-        half = max_num_iterations // 2
-        self.refine_stop = half if config.refine_stop is None else min(config.refine_stop, half)
+        cap = int(max_num_iterations * config.refine_stop_share)  # 0.5: exactly max_num_iterations // 2
+        self.refine_stop = cap if config.refine_stop is None else min(config.refine_stop, cap)
 
     def initialize_state(self, gaussians: GaussianParameters) -> State:
         """Zero statistics for the Gaussians as they are now."""
@@ -82,15 +93,20 @@ class DefaultStrategy:
 
     @torch.no_grad()
     def step_post_backward(self, state: State, step: int, means2d: Tensor, radii: Tensor,
-                           image_size: tuple[int, int]) -> None:
+                           image_size: tuple[int, int], absgrad: Tensor | None = None) -> None:
         """Accumulate one view's statistics: `means2d` [N, 2] (pixels, with `.grad` from this backward),
-        `radii` [N] (pixels, 0 = not visible), `image_size` (width, height)."""
-        if step > self.refine_stop or means2d.grad is None:
+        `radii` [N] (pixels, 0 = not visible), `image_size` (width, height); `absgrad` [N, 2] the per-pixel
+        gradients summed in absolute value (pixels), read instead of `means2d.grad` with the `absgrad` option."""
+        if self.config.absgrad and absgrad is None:
+            raise ValueError("--model.densification.absgrad: this method's renderer does not report absolute "
+                             "screen-space gradients; set it to False")
+        screen_grad = absgrad if self.config.absgrad else means2d.grad
+        if step > self.refine_stop or screen_grad is None:
             return
         width, height = image_size
         visible = radii > 0
         # 3DGS thresholds the gradient with respect to NDC coordinates: d/d(ndc) = d/d(pixel) * size / 2
-        grad = means2d.grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d.device)
+        grad = screen_grad.detach() * torch.tensor([width / 2.0, height / 2.0], device=means2d.device)
         # whole-array updates that add 0 (and take the maximum with 0) where not visible: the same numbers as
         # updating the visible entries through boolean indexing, without its gathers and scatters
         zero = grad.new_zeros(())
@@ -108,8 +124,13 @@ class DefaultStrategy:
 
     def is_late_prune_step(self, step: int) -> bool:
         """Whether `step` is on the densification cadence after the last densification event: where another
-        criterion (PAUP) may still prune, with nothing grown."""
+        criterion (PAUP) or `late_min_opacity` may still prune, with nothing grown."""
         return step > self.refine_stop and step % self.config.refine_every == 0
+
+    def prunes_at(self, step: int) -> bool:
+        """Whether `step_post_optimizer` may remove Gaussians at `step` by this strategy's own rules."""
+        late = self.config.late_min_opacity is not None and self.is_late_prune_step(step)
+        return self.is_refine_step(step) or late
 
     def step_post_optimizer(self, gaussians: GaussianParameters, optimizers: OptimizerSurgery, state: State,
                             step: int, remove: Tensor | None = None) -> Tensor | None:
@@ -120,6 +141,10 @@ class DefaultStrategy:
         origin = None
         if self.is_refine_step(step):
             origin = self.densify_and_prune(gaussians, optimizers, state, step, remove)
+        elif c.late_min_opacity is not None and self.is_late_prune_step(step):
+            transparent = torch.sigmoid(gaussians.opacities.detach()) < c.late_min_opacity
+            remove = transparent if remove is None else remove | transparent
+            origin = self.prune(gaussians, optimizers, state, remove)
         elif remove is not None and bool(remove.any()):
             origin = self.prune(gaussians, optimizers, state, remove)
         if c.reset_opacity_every > 0 and step > 0 and step % c.reset_opacity_every == 0 and step <= self.refine_stop:
@@ -157,7 +182,8 @@ class DefaultStrategy:
             too_big = scale_now > c.prune_world_size * self.scene_extent
             # new Gaussians have no screen-size history: 0
             max_radii = torch.cat([state["max_radii"], state["max_radii"].new_zeros(len(keep) - n_before)])
-            too_big |= max_radii > c.prune_screen_size
+            if c.prune_screen_size is not None:
+                too_big |= max_radii > c.prune_screen_size
             keep &= ~too_big
         remove_all_but(g, optimizers, keep)
         state.update(self.initialize_state(g))

@@ -1,0 +1,76 @@
+"""WaterSplatting's medium compositor, compiled (`medium_compositing.cpp`): the same numbers as
+`uw3dgs/render/medium_reference.py` (float rounding aside) with a hand-written C++ backward; a sibling of
+`compositing.py` that shares the compiled projection (`projection.py`, so `means2d` stays in the graph) and the
+reference's binning (`reference.bin_gaussians`), and replaces only the compositing.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from uw3dgs.kernels.build import extension, runs_on
+from uw3dgs.kernels.compositing import MAX_TILE
+from uw3dgs.kernels.projection import project
+from uw3dgs.render.medium_types import MediumRasterOutput, PixelMedium
+from uw3dgs.render.projection import Projection
+from uw3dgs.render.reference import bin_gaussians
+from uw3dgs.render.types import RasterSettings
+
+
+def takes(means: Tensor, settings: RasterSettings) -> bool:
+    """Whether the compiled medium compositor runs for Gaussians of this tensor's device and dtype."""
+    return runs_on(means) and settings.tile_size <= MAX_TILE
+
+
+class _CompositeMedium(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, colors, depths, medium, bins, width, height, settings, absgrad):
+        ext = extension()
+        lists = (bins.tile_starts, bins.tile_counts, bins.gauss_ids)
+        view = (width, height, settings.tile_size, settings.alpha_min, settings.alpha_max, settings.transmittance_min)
+        restored, depth, alpha, obj, water, weight_sum, pixel_count = ext.medium_composite_forward(
+            means2d, conics, opacities, colors, depths, medium, *lists, *view)
+        ctx.save_for_backward(means2d, conics, opacities, colors, depths, medium, *lists)
+        ctx.view = view
+        ctx.absgrad = absgrad
+        ctx.mark_non_differentiable(weight_sum, pixel_count)
+        return restored, depth, alpha, obj, water, weight_sum, pixel_count
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_restored, g_depth, g_alpha, g_obj, g_water, _g_weight_sum, _g_pixel_count):
+        *inputs, starts, counts, ids = ctx.saved_tensors
+        height, width = inputs[5].shape[:2]
+        grads = [torch.zeros(shape, dtype=inputs[0].dtype) if g is None else g.contiguous()
+                 for g, shape in ((g_restored, (height, width, 3)), (g_depth, (height, width)),
+                                  (g_alpha, (height, width)), (g_obj, (height, width, 3)),
+                                  (g_water, (height, width, 3)))]
+        g_means2d, g_conics, g_opacities, g_colors, g_medium, abs_sums = (
+            extension().medium_composite_backward(*inputs, starts, counts, ids, *ctx.view, *grads))
+        if ctx.absgrad is not None:
+            ctx.absgrad += abs_sums
+        return g_means2d, g_conics, g_opacities, g_colors, None, g_medium, *[None] * 5
+
+
+def rasterize_medium_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
+                         medium: PixelMedium, viewmat: Tensor, K: Tensor, width: int, height: int,
+                         settings: RasterSettings, absgrad: bool = False) -> MediumRasterOutput:
+    """`rasterize_medium_reference`'s contract and numbers, compiled (callers check `takes` first)."""
+    medium.check(width, height)
+    dtype = means.dtype
+    means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
+    opacities, colors = (t.to(dtype).contiguous() for t in (opacities, colors))
+    viewmat, K = (t.detach().to(dtype).contiguous() for t in (viewmat, K))
+    means2d, conics, depths, radii = project(means, quats, scales, opacities.detach(), viewmat, K, width, height,
+                                             settings)
+    proj = Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, valid=radii > 0)
+    bins = bin_gaussians(proj, width, height, settings.tile_size)
+    abs_buffer = means.new_zeros(len(means), 2) if absgrad else None
+    restored, depth, alpha, obj, water, weight_sum, pixel_count = _CompositeMedium.apply(
+        means2d, conics, opacities, colors, depths.detach(), medium.packed().to(dtype).contiguous(), bins, width,
+        height, settings, abs_buffer)
+    return MediumRasterOutput(render=restored, alpha=alpha, depth=depth, means2d=means2d, radii=radii, depths=depths,
+                              conics=conics, weight_sum=weight_sum, pixel_count=pixel_count, object=obj,
+                              medium=water, absgrad=abs_buffer)
