@@ -242,6 +242,7 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
     assert rows[0].rstrip().endswith("1.00x")
 
 
+@pytest.mark.slow  # trains runs in process
 def test_viewer_slowdown_runs_every_setting(tmp_path, cache_dir, tiny_scene_config, monkeypatch, capsys,
                                             keep_threads):
     import json
@@ -309,6 +310,7 @@ def test_step_profile_prints_one_table_per_size_for_every_method(uw3dgs_run, mon
         assert all(w > 0 for w in wall)
 
 
+@pytest.mark.slow  # trains runs in process
 def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path, cache_dir, capsys):
     script = load_script("medium_recovery")
     argv = ["--steps", "5", "--variants", "default", "plume-homogeneous", "--output-dir", str(tmp_path),
