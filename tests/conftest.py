@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import os
 import re
 from pathlib import Path
 
 import pytest
 import torch
 
+from uw3dgs.data.cache import default_cache_dir
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.engine.config import TrainConfig
@@ -17,6 +19,10 @@ from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 
 torch.set_num_threads(2)
+# Every process a test starts (uw-train, a grid's cells, uw-render, ...) loads the compiled kernels this session
+# builds, whatever UW3DGS_CACHE the test gives it, instead of building them again in the test's own cache folder
+# (minutes on a 2-core machine, inside the test's time limits).
+os.environ.setdefault("TORCH_EXTENSIONS_DIR", str(default_cache_dir() / "torch_extensions"))
 
 
 @pytest.fixture(scope="session")

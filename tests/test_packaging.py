@@ -165,7 +165,7 @@ def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_show
     assert "medium_field: demo-clear-water" in saved and "uw3dgs_field_demo.ClearWaterConfig" in saved
     run([str(bin_dir / "uw-export"), str(config), "--output", str(tmp_path / "scene.ply"), "--medium-samples", "3"],
         cwd="/")
-    medium = json.loads((tmp_path / "medium.json").read_text())
+    medium = json.loads((tmp_path / "scene.medium.json").read_text())  # named after the PLY
     assert medium["kind"] == "grid" and medium["shape"] == [3, 3, 3]
     run([str(bin_dir / "uw-render"), str(config), "--path", "test", "--outputs", "uwi,uri,backscatter", "--images",
          str(tmp_path / "frames")], cwd="/")
