@@ -207,7 +207,7 @@ def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3
     monkeypatch.setattr(sys, "argv", ["training_step", str(uw3dgs_run.run_dir / "config.yml"), "--repeats", "1"])
     load_script("training_step").main()
     rows = [line for line in capsys.readouterr().out.splitlines() if "ms per step" in line]
-    assert len(rows) == 9 and rows[0].split()[0] == "now"
+    assert len(rows) == 7 and rows[0].split()[0] == "now"
     assert gaussians_module.eval_sh_split is sh and VMField.forward is medium
 
 
@@ -224,7 +224,10 @@ def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cach
     # the way without the branch trains as uw3dgs-no-paup does: no masked render, no L_PAPSL, no PAUP pruning
     batch = trainer.datamanager.next_train()
     with_branch = trainer.model.get_outputs(batch["camera"])
-    script.paup_in_pytorch(trainer)  # the masked render a frozen render, its L1 PyTorch's
+    # "PAUP in PyTorch" is the run's config with --model.kernels torch: the masked render a frozen render, its L1
+    # PyTorch's (what that policy gives PAUP, set here on the built model)
+    assert script.PAUP_IN_PYTORCH.configure(trainer.config).model.kernels == "torch"
+    trainer.model.paup.scorer.kernels, trainer.model.paup.fused_masked_l1 = "torch", False
     in_pytorch = trainer.model.get_outputs(batch["camera"])
     assert type(in_pytorch["uri_enhanced_l1"].grad_fn).__name__ != type(with_branch["uri_enhanced_l1"].grad_fn).__name__
     script.without_paup(trainer)

@@ -34,6 +34,10 @@ def without_paup(trainer: Any) -> None:
             callback.extra_pruning = None
 
 
+PAUP_IN_PYTORCH = Way(configure=with_kernels("torch"))
+"""The run with `--model.kernels torch`: phi in PyTorch, the masked render a frozen render followed by PyTorch's L1."""
+
+
 def enhanced_every(steps: int) -> Way:
     """The run with PAUP's I_UR^Enh every `steps` steps (`--model.paup.enhanced-every`)."""
     def configure(config: Any) -> Any:
@@ -53,7 +57,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     ways = {"without PAUP (uw3dgs-no-paup)": Way(install=without_paup), "with PAUP (uw3dgs)": Way(),
-            "PAUP in PyTorch": Way(configure=with_kernels("torch")),
+            "PAUP in PyTorch": PAUP_IN_PYTORCH,
             **{f"with PAUP, I_UR^Enh every {n} steps": enhanced_every(n) for n in args.enhanced_every}}
     mean = mean_training_steps(args.config, ways, args.steps, args.rounds)
     base = mean["without PAUP (uw3dgs-no-paup)"]
