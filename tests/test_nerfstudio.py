@@ -164,7 +164,7 @@ def test_auto_picks_nerfstudio_for_a_transforms_json_folder(tmp_path):
 @pytest.mark.slow
 def test_uw_train_trains_on_a_transforms_json_folder(tmp_path):
     """The synthetic scene written by uw-synth, converted to transforms.json: a short 3DGS run learns it."""
-    from uw3dgs.cli.synth import entrypoint as uw_synth
+    from uw3dgs.datamanagers.synthetic.cli import entrypoint as uw_synth
 
     root = tmp_path / "scene"
     uw_synth(["--out", str(root), "--width", "48", "--height", "36", "--num-views", "8"])

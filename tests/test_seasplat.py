@@ -228,7 +228,7 @@ def test_a_short_seasplat_run_trains_evaluates_exports_and_renders(make_config, 
     ply = tmp_path / "scene.ply"
     code, _, _ = run_command(export_main, [str(trainer.run_dir / "config.yml"), "--output", str(ply)], capsys)
     assert code == 0 and ply.stat().st_size > 0
-    medium = json.loads((tmp_path / "medium.json").read_text())
+    medium = json.loads((tmp_path / "scene.medium.json").read_text())  # named after the PLY
     assert medium["b_inf"] == pytest.approx(trainer.model.medium.b_inf.tolist(), abs=1e-6)
     assert medium["kind"] == "homogeneous" and "normalised" in medium["meaning"]
     # the viewer's water control: k = 1 is the model's UWI, k = 0 its URI
