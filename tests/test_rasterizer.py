@@ -57,7 +57,9 @@ def assert_close_rel(actual: Tensor, expected: Tensor, dtype: torch.dtype, name:
     """float64: 1e-9 relative; float32: 1e-4 relative, with an absolute floor of 1e-4 x the largest entry."""
     rel = 1e-9 if dtype == F64 else 1e-4
     scale = expected.abs().max().item() if expected.numel() else 0.0
-    torch.testing.assert_close(actual, expected, rtol=rel, atol=rel * max(scale, 1e-12), msg=name)
+    # msg as a callable keeps torch's report (how many entries, the largest errors) after the quantity's name
+    torch.testing.assert_close(actual, expected, rtol=rel, atol=rel * max(scale, 1e-12),
+                               msg=lambda detail: f"{name} (largest |expected| {scale:.3g}): {detail}")
 
 
 def assert_matches_reference(out, grads, ref, ref_grads, dtype: torch.dtype) -> None:
