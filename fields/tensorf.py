@@ -4,7 +4,8 @@ shading MLP `MLPRender_Fea` of `models/tensorBase.py`), a field of kind 'radianc
 Three modes pair a plane with a line (axes XY x Z, XZ x Y, YZ x X). At a point x in box coordinates [-1, 1]^3:
     density = act( sum_m sum_r P^sigma_{m,r}(x_plane) L^sigma_{m,r}(x_line) ),  act = ReLU or softplus(. + shift)
     features = B [ P^c_{m,r}(x_plane) L^c_{m,r}(x_line) ]_{m,r}    (B: the appearance basis, no bias)
-    colour = sigmoid(MLP([features, viewdir, PE(features), PE(viewdir)]))
+    colour = sigmoid(MLP([features, viewdir, PE(features), PE(viewdir)]))    (shading 'mlp', `MLPRender_Fea`)
+    colour = relu(sum_k features[c, k] Y_k(viewdir) + 0.5), k < 9              (shading 'sh', `SHRender`)
 with bilinear planes and linear lines (grid_sample, align_corners=True), as the official code reads them.
 """
 
@@ -19,14 +20,17 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from uw3dgs.config import Target, target
-from uw3dgs.options import check_number
+from uw3dgs.options import OptionError, check_number
 from uw3dgs.raymarch.field import RadianceField, RadianceFieldConfig
 from uw3dgs.registry import FieldSpec
+from uw3dgs.render.sh import num_sh_bases, sh_basis
 
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 """TensoRF's `matMode`: the two axes of each mode's plane (first along the plane's width)."""
 LINE_AXES = (2, 1, 0)
 """TensoRF's `vecMode`: the axis of each mode's line."""
+SH_DEGREE = 2
+"""TensoRF's `SHRender` evaluates degree-2 harmonics: 9 coefficients per channel, 27 appearance features."""
 
 
 def positional_encoding(x: Tensor, freqs: int) -> Tensor:
@@ -81,6 +85,9 @@ class TensoRFFieldConfig(RadianceFieldConfig):
     """Frequencies of the features' encoding in the shading MLP (`fea_pe`)."""
     hidden: int = 128
     """Width of the shading MLP's two hidden layers (`featureC`)."""
+    shading: Literal["mlp", "sh"] = "mlp"
+    """How features become colour (`shadingMode`): 'mlp' the shading MLP (`MLP_Fea`, the LLFF config); 'sh' the
+    features as degree-2 spherical harmonics per channel (`SH`: no network, appearance_dim 27)."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -92,6 +99,10 @@ class TensoRFFieldConfig(RadianceFieldConfig):
             check_number(self, name, ge=0, integer=True)
         check_number(self, "init_scale", ge=0)
         check_number(self, "density_shift")
+        if self.shading == "sh" and self.appearance_dim != 3 * num_sh_bases(SH_DEGREE):
+            n = num_sh_bases(SH_DEGREE)
+            raise OptionError("appearance_dim", f"must be {3 * n} with shading 'sh' (3 channels x {n} harmonics), "
+                                                f"got {self.appearance_dim}")
 
 
 class TensoRFField(RadianceField):
@@ -105,10 +116,13 @@ class TensoRFField(RadianceField):
         self.density_planes, self.density_lines = self._factors(config.density_components, resolution)
         self.app_planes, self.app_lines = self._factors(config.appearance_components, resolution)
         self.basis = nn.Linear(sum(config.appearance_components), config.appearance_dim, bias=False)
-        inputs = config.appearance_dim + 3 + 2 * config.feature_pe * config.appearance_dim + 2 * config.view_pe * 3
-        self.mlp = nn.Sequential(nn.Linear(inputs, config.hidden), nn.ReLU(), nn.Linear(config.hidden, config.hidden),
-                                 nn.ReLU(), nn.Linear(config.hidden, 3))
-        nn.init.zeros_(self.mlp[-1].bias)
+        self.mlp: nn.Sequential | None = None
+        if config.shading == "mlp":
+            inputs = (config.appearance_dim + 3 + 2 * config.feature_pe * config.appearance_dim
+                      + 2 * config.view_pe * 3)
+            self.mlp = nn.Sequential(nn.Linear(inputs, config.hidden), nn.ReLU(),
+                                     nn.Linear(config.hidden, config.hidden), nn.ReLU(), nn.Linear(config.hidden, 3))
+            nn.init.zeros_(self.mlp[-1].bias)
 
     def _factors(self, components: tuple[int, int, int], res: tuple[int, int, int]):
         s = self.config.init_scale
@@ -135,6 +149,9 @@ class TensoRFField(RadianceField):
     def color(self, x: Tensor, viewdirs: Tensor) -> Tensor:
         c = self.config
         features = self.basis(torch.cat(vm_products(self.app_planes, self.app_lines, self.normalize(x)), dim=-1))
+        if self.mlp is None:
+            harmonics = sh_basis(SH_DEGREE, viewdirs)  # [N, 9]
+            return torch.relu((features.view(len(x), 3, -1) * harmonics[:, None, :]).sum(-1) + 0.5)
         inputs = [features, viewdirs]
         if c.feature_pe > 0:
             inputs.append(positional_encoding(features, c.feature_pe))
@@ -144,7 +161,8 @@ class TensoRFField(RadianceField):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         grids = [*self.density_lines, *self.density_planes, *self.app_lines, *self.app_planes]
-        return {"field_grids": grids, "field_networks": [*self.basis.parameters(), *self.mlp.parameters()]}
+        networks = [*self.basis.parameters(), *([] if self.mlp is None else self.mlp.parameters())]
+        return {"field_grids": grids, "field_networks": networks}
 
     def resolution(self) -> tuple[int, int, int]:
         res = [0, 0, 0]
@@ -199,4 +217,4 @@ def samples_for(resolution: tuple[int, int, int], step_ratio: float) -> int:
 
 
 field_spec = FieldSpec(name="tensorf", description="TensoRF's VM-split density and appearance grids with its shading "
-                       "MLP (a radiance field).", config=TensoRFFieldConfig(), kind="radiance")
+                       "MLP or spherical harmonics (a radiance field).", config=TensoRFFieldConfig(), kind="radiance")

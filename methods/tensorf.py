@@ -10,7 +10,7 @@ and is left out (the background is black: what no sample covers adds nothing).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -367,4 +367,29 @@ method = MethodSpec(
                 "TV losses, 4096 rays x 25,000 steps; no white background.",
     config=TrainConfig(method_name="tensorf", model=TensoRFModelConfig(), optimizers=tensorf_optimizers(),
                        max_num_iterations=25000),
+)
+
+
+
+CPU_STEPS = 3000
+"""The CPU recipe's run length (`cpu_recipe`): 3,000 steps of 1,024 rays, about six passes over IUI3-RedSea's
+training pixels at downscale 8."""
+
+
+def cpu_recipe(model: TensoRFModelConfig) -> TensoRFModelConfig:
+    """TensoRF's recipe cut to fit a CPU hour (docs/methods/tensorf.md, "On a CPU"): spherical-harmonic shading
+    instead of the MLP (TensoRF's own `SH` mode), a 64^3 -> 200^3 grid at twice the voxel size a step and at most 128
+    samples a ray, 1,024 rays a step; growth and alpha masks at the same fractions of the run as the official
+    schedule's (2,000 ... 5,500 and 2,500 of 25,000)."""
+    return replace(model, radiance=replace(model.radiance, shading="sh"), batch_size=1024, voxels_init=64 ** 3,
+                   voxels_final=200 ** 3, upsample_steps=(240, 360, 480, 660), alpha_mask_steps=(300,),
+                   step_ratio=2.0, max_samples=128)
+
+
+cpu = MethodSpec(
+    name="tensorf-cpu",
+    description="tensorf cut to fit a CPU hour: spherical-harmonic shading (no MLP), a 64^3 -> 200^3 grid, at most "
+                "128 samples a ray, 1,024 rays x 3,000 steps; the schedule's shape scaled to the run.",
+    config=replace(method.config, method_name="tensorf-cpu", max_num_iterations=CPU_STEPS,
+                   model=cpu_recipe(method.config.model)),
 )

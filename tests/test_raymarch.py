@@ -13,7 +13,7 @@ from test_datamanagers import make_dataset
 from uw3dgs.datamanagers.colmap import ColmapDataManagerConfig
 from uw3dgs.datamanagers.seathru_nerf import SeathruNerfDataManagerConfig
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
-from uw3dgs.fields.tensorf import LINE_AXES, PLANE_AXES, TensoRFFieldConfig
+from uw3dgs.fields.tensorf import LINE_AXES, PLANE_AXES, TensoRFFieldConfig, vm_products
 from uw3dgs.raymarch.compositing import composite, composite_underwater, volume_weights
 from uw3dgs.raymarch.occupancy import OccupancyGrid
 from uw3dgs.raymarch.rays import RayBundle
@@ -149,6 +149,61 @@ def test_vm_density_reads_and_gradients_match_a_dense_grid():
                                     list(field.density_planes) + list(field.density_lines))
     for g, r in zip(grads, ref_grads, strict=True):
         torch.testing.assert_close(g, r, rtol=1e-10, atol=1e-12)
+
+
+def test_sh_shading_is_tensorfs_shrender_written_out():
+    """shading 'sh': relu(sum_k f[c, k] Y_k(d) + 0.5) with the 9 degree-2 harmonics, features channel-major (TensoRF's
+    `features.view(-1, 3, 9)`), against the harmonics written out here from their closed forms, values and
+    gradients."""
+    config = TensoRFFieldConfig(density_components=(2, 2, 2), appearance_components=(4, 3, 2), shading="sh",
+                                init_scale=0.5)
+    torch.manual_seed(1)
+    field = config.setup(lo=torch.tensor([-1.0, -2.0, 0.5]), hi=torch.tensor([2.0, 1.0, 3.0]),
+                         resolution=(4, 5, 6)).double()
+    assert field.mlp is None and set(field.param_groups()["field_networks"]) == set(field.basis.parameters())
+    x = field.lo + torch.rand(64, 3, dtype=torch.float64) * (field.hi - field.lo)
+    d = torch.nn.functional.normalize(torch.randn(64, 3, dtype=torch.float64), dim=-1)
+    rgb = field.color(x, d)
+    features = field.basis(torch.cat(vm_products(field.app_planes, field.app_lines, field.normalize(x)), dim=-1))
+    dx, dy, dz = d.unbind(-1)
+    harmonics = torch.stack([torch.full_like(dx, 0.5 / math.sqrt(math.pi)),
+                             -math.sqrt(3 / (4 * math.pi)) * dy, math.sqrt(3 / (4 * math.pi)) * dz,
+                             -math.sqrt(3 / (4 * math.pi)) * dx,
+                             0.5 * math.sqrt(15 / math.pi) * dx * dy, -0.5 * math.sqrt(15 / math.pi) * dy * dz,
+                             0.25 * math.sqrt(5 / math.pi) * (2 * dz * dz - dx * dx - dy * dy),
+                             -0.5 * math.sqrt(15 / math.pi) * dx * dz,
+                             0.25 * math.sqrt(15 / math.pi) * (dx * dx - dy * dy)],
+                            dim=-1)
+    expected = torch.relu(torch.einsum("nck,nk->nc", features.reshape(64, 3, 9), harmonics) + 0.5)
+    torch.testing.assert_close(rgb, expected, rtol=1e-12, atol=1e-12)
+    grads = torch.autograd.grad(rgb.sum(), list(field.app_planes) + [field.basis.weight])
+    ref = torch.autograd.grad(expected.sum(), list(field.app_planes) + [field.basis.weight])
+    for g, r in zip(grads, ref, strict=True):
+        torch.testing.assert_close(g, r, rtol=1e-10, atol=1e-12)
+
+
+def test_sh_shading_needs_27_appearance_features():
+    with pytest.raises(ValueError, match="must be 27 with shading 'sh'"):
+        TensoRFFieldConfig(shading="sh", appearance_dim=12)
+
+
+@pytest.mark.parametrize("parent", ["tensorf", "seathru-nerf"])
+def test_cpu_preset_differs_from_its_parent_only_in_the_cpu_recipe(parent):
+    from dataclasses import asdict
+
+    from uw3dgs.registry import METHODS
+
+    def flat(d, prefix=""):
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    base, cpu = (flat(asdict(METHODS[name].config)) for name in (parent, f"{parent}-cpu"))
+    differ = {k for k in base.keys() | cpu.keys() if base.get(k) != cpu.get(k)}
+    assert differ == {"method_name", "max_num_iterations", "model.radiance.shading", "model.batch_size",
+                      "model.voxels_init", "model.voxels_final", "model.upsample_steps", "model.alpha_mask_steps",
+                      "model.step_ratio", "model.max_samples"}
 
 
 def test_upsampling_keeps_the_field_at_the_old_vertices_interpolated():

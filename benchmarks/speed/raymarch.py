@@ -23,9 +23,9 @@ from uw3dgs.engine.optimizers import Optimizers
 from uw3dgs.registry import DATAMANAGERS, METHODS
 
 
-def build(method: str, data: Path | None, factor: int, voxels: int, batch: int | None):
+def build(method: str, data: Path | None, factor: int, voxels: int | None, batch: int | None):
     config = METHODS[method].config
-    model_config = dataclasses.replace(config.model, voxels_init=voxels,
+    model_config = dataclasses.replace(config.model, voxels_init=voxels or config.model.voxels_init,
                                        batch_size=batch or config.model.batch_size)
     manager = (DATAMANAGERS["synthetic"].config if data is None else
                config.datamanager.resolve(data)).setup(data=data, downscale_factor=factor)
@@ -37,10 +37,11 @@ def build(method: str, data: Path | None, factor: int, voxels: int, batch: int |
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--method", default="tensorf", choices=["tensorf", "seathru-nerf"])
+    parser.add_argument("--method", default="tensorf", choices=["tensorf", "tensorf-cpu", "seathru-nerf"])
     parser.add_argument("--data", type=Path, default=None, help="dataset folder (default: the built-in scene)")
     parser.add_argument("--downscale-factor", type=int, default=1)
-    parser.add_argument("--voxels", type=int, default=128 ** 3, help="grid voxels (TensoRF starts at 128^3)")
+    parser.add_argument("--voxels", type=int, default=None,
+                        help="grid voxels (default: the method's start, 128^3 for tensorf)")
     parser.add_argument("--batch", type=int, default=None, help="rays per training step (default: the method's)")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
