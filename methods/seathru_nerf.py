@@ -17,7 +17,7 @@ The restored image (their J = sum_i w_i c_i) is the URI; the medium is reported 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import torch
@@ -29,7 +29,7 @@ from uw3dgs.data.datamanager import Batch
 from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
-from uw3dgs.methods.tensorf import CPU_STEPS, TensoRFModel, TensoRFModelConfig, cpu_recipe, tensorf_optimizers
+from uw3dgs.methods.tensorf import TensoRFModel, TensoRFModelConfig, cpu_method, tensorf_optimizers
 from uw3dgs.models.base import restored_image_metrics
 from uw3dgs.options import check_number
 from uw3dgs.raymarch.compositing import composite_underwater
@@ -214,10 +214,5 @@ method = MethodSpec(
                        max_num_iterations=25000),
 )
 
-cpu = MethodSpec(
-    name="seathru-nerf-cpu",
-    description="seathru-nerf on tensorf-cpu's field and schedule (spherical-harmonic shading, 64^3 -> 200^3 grid, "
-                "1,024 rays x 3,000 steps): the medium head, compositor and losses unchanged.",
-    config=replace(method.config, method_name="seathru-nerf-cpu", max_num_iterations=CPU_STEPS,
-                   model=cpu_recipe(method.config.model)),
-)
+cpu = cpu_method(method, "seathru-nerf on tensorf-cpu's field and schedule (spherical-harmonic shading, 64^3 -> 200^3 "
+                         "grid, 1,024 rays x 3,000 steps): the medium head, compositor and losses unchanged.")

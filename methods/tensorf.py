@@ -386,10 +386,14 @@ def cpu_recipe(model: TensoRFModelConfig) -> TensoRFModelConfig:
                    step_ratio=2.0, max_samples=128)
 
 
-cpu = MethodSpec(
-    name="tensorf-cpu",
-    description="tensorf cut to fit a CPU hour: spherical-harmonic shading (no MLP), a 64^3 -> 200^3 grid, at most "
-                "128 samples a ray, 1,024 rays x 3,000 steps; the schedule's shape scaled to the run.",
-    config=replace(method.config, method_name="tensorf-cpu", max_num_iterations=CPU_STEPS,
-                   model=cpu_recipe(method.config.model)),
-)
+
+def cpu_method(parent: MethodSpec, description: str) -> MethodSpec:
+    """`parent` (a TensoRF-field method) on the CPU recipe, registered as `<parent>-cpu`."""
+    name = f"{parent.name}-cpu"
+    return MethodSpec(name=name, description=description,
+                      config=replace(parent.config, method_name=name, max_num_iterations=CPU_STEPS,
+                                     model=cpu_recipe(parent.config.model)))
+
+
+cpu = cpu_method(method, "tensorf cut to fit a CPU hour: spherical-harmonic shading (no MLP), a 64^3 -> 200^3 grid, "
+                         "at most 128 samples a ray, 1,024 rays x 3,000 steps; the schedule's shape scaled to the run.")
