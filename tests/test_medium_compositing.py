@@ -41,6 +41,7 @@ class BruteMedium:
     alpha: Tensor
     depth: Tensor
     terminated_pixels: int
+    terminated: Tensor  # [H, W] bool: the pixels that ended early
 
 
 def brute_force_medium(scene: Scene, medium: PixelMedium, settings: RasterSettings) -> BruteMedium:
@@ -89,7 +90,8 @@ def brute_force_medium(scene: Scene, medium: PixelMedium, settings: RasterSettin
     shape = (cam.height, cam.width)
     return BruteMedium(object=obj.reshape(*shape, 3), medium=water.reshape(*shape, 3),
                        restored=restored.reshape(*shape, 3), alpha=alpha_img.reshape(shape),
-                       depth=depth_img.reshape(shape), terminated_pixels=int(done.sum()))
+                       depth=depth_img.reshape(shape), terminated_pixels=int(done.sum()),
+                       terminated=done.reshape(shape))
 
 
 def render_reference(scene: Scene, medium: PixelMedium, settings: RasterSettings, **kwargs):
@@ -98,8 +100,8 @@ def render_reference(scene: Scene, medium: PixelMedium, settings: RasterSettings
                                       **kwargs)
 
 
-def _scene_and_medium(seed: int, n: int) -> tuple[Scene, PixelMedium]:
-    scene = random_scene(seed, n)
+def _scene_and_medium(seed: int, n: int, width: int = 40, height: int = 30) -> tuple[Scene, PixelMedium]:
+    scene = random_scene(seed, n, width, height)
     scene.features = scene.features.clamp(0, 1)
     return scene, random_medium(seed, scene.camera.width, scene.camera.height)
 
@@ -247,16 +249,26 @@ def _render_with_grads(fn, scene: Scene, medium: PixelMedium, dtype: torch.dtype
     return out, [t.grad for t in leaves + water] + [out.means2d.grad, out.absgrad]
 
 
+WHOLE_TILES_END = RasterSettings(tile_size=8, transmittance_min=0.6)
+"""Ends every pixel of many tiles of `_scene_and_medium(2, 100)` before their lists end: the tile stops early."""
+
+
 @pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["f64", "f32"])
-@pytest.mark.parametrize("seed,n,settings", [(0, 60, RasterSettings(tile_size=16)), (2, 100, TERMINATING),
-                                             (1, 2000, RasterSettings(tile_size=16))])
-def test_compiled_matches_reference(seed: int, n: int, settings: RasterSettings, dtype: torch.dtype) -> None:
+@pytest.mark.parametrize("seed,n,settings,size", [
+    (0, 60, RasterSettings(tile_size=16), (40, 30)),
+    (2, 100, TERMINATING, (40, 30)),
+    (2, 100, WHOLE_TILES_END, (40, 30)),
+    (3, 4, RasterSettings(tile_size=8), (37, 23)),  # most tiles empty: pure water there; tiles cut by the border
+    (1, 2000, RasterSettings(tile_size=16), (40, 30)),
+], ids=["tile16", "terminating", "whole-tiles-end", "empty-tiles", "dense"])
+def test_compiled_matches_reference(seed: int, n: int, settings: RasterSettings, size: tuple[int, int],
+                                    dtype: torch.dtype) -> None:
     """Every output, every gradient (the medium's too) and the absolute gradients of the compiled compositor equal
     the reference's: to 1e-9 relative in float64, 1e-4 in float32 (integers exactly)."""
     _compiled()
     from test_rasterizer import assert_close_rel
 
-    scene, medium = _scene_and_medium(seed, n)
+    scene, medium = _scene_and_medium(seed, n, *size)
     settings = dataclasses.replace(settings, backend="cpu")
     out, grads = _render_with_grads(rasterize_medium_cpu, scene, medium, dtype, settings)
     ref, ref_grads = _render_with_grads(rasterize_medium_reference, scene, medium, dtype, settings)
@@ -267,6 +279,30 @@ def test_compiled_matches_reference(seed: int, n: int, settings: RasterSettings,
     for name, got, want in zip(names, grads, ref_grads, strict=True):
         assert want.abs().sum() > 0, name
         assert_close_rel(got, want, dtype, f"grad {name}")
+    # without a gradient no trace is recorded: the same images, bit for bit
+    cam = scene.camera
+    with torch.no_grad():
+        plain = rasterize_medium_cpu(*(t.to(dtype) for t in scene.inputs()),
+                                     PixelMedium(*(t.to(dtype) for t in (medium.color, medium.sigma_bs,
+                                                                          medium.sigma_attn))),
+                                     cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height, settings)
+    for name in ("object", "medium", "render", "alpha", "depth", "weight_sum", "pixel_count"):
+        assert torch.equal(getattr(plain, name), getattr(out, name).detach()), name
+
+
+def test_compiled_cases_reach_their_paths() -> None:
+    """The cases above do what their names say: tiles without Gaussians, tiles whose every pixel terminates."""
+    scene, medium = _scene_and_medium(3, 4, 37, 23)
+    ref = brute_force_medium(scene, medium, RasterSettings(tile_size=8))
+    cam = scene.camera
+    proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, cam.viewmat, cam.K, cam.width,
+                             cam.height, RasterSettings(tile_size=8))
+    bins = bin_gaussians(proj, cam.width, cam.height, 8)
+    assert (bins.tile_counts == 0).sum() >= 4 and ref.alpha.max() > 0.3
+    scene, medium = _scene_and_medium(2, 100)
+    ref = brute_force_medium(scene, medium, WHOLE_TILES_END)
+    ended = ref.terminated.unfold(0, 8, 8).unfold(1, 8, 8).all(-1).all(-1)  # whole 8 x 8 tiles
+    assert ended.sum() >= 2
 
 
 def test_dispatch_picks_compiled_on_cpu_and_refuses_gsplat(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -66,20 +66,18 @@ std::vector<torch::Tensor> depth_consistency_backward(torch::Tensor means, torch
                                                       torch::Tensor gauss, torch::Tensor pixel, torch::Tensor coef,
                                                       double grad);
 std::vector<torch::Tensor> medium_composite_forward(torch::Tensor means2d, torch::Tensor conics,
-                                                    torch::Tensor opacities, torch::Tensor colors,
-                                                    torch::Tensor depths, torch::Tensor medium,
-                                                    torch::Tensor tile_starts, torch::Tensor tile_counts,
-                                                    torch::Tensor gauss_ids, int64_t width, int64_t height,
-                                                    int64_t tile, double alpha_min, double alpha_max, double t_min);
+                                                    torch::Tensor opacities, torch::Tensor feats,
+                                                    torch::Tensor depths, torch::Tensor radii, torch::Tensor medium,
+                                                    int64_t width, int64_t height, int64_t tile_size,
+                                                    double alpha_min, double alpha_max, double t_min,
+                                                    bool for_backward);
 std::vector<torch::Tensor> medium_composite_backward(torch::Tensor means2d, torch::Tensor conics,
-                                                     torch::Tensor opacities, torch::Tensor colors,
-                                                     torch::Tensor depths, torch::Tensor medium,
-                                                     torch::Tensor tile_starts, torch::Tensor tile_counts,
-                                                     torch::Tensor gauss_ids, int64_t width, int64_t height,
-                                                     int64_t tile, double alpha_min, double alpha_max, double t_min,
-                                                     torch::Tensor g_restored, torch::Tensor g_depth,
-                                                     torch::Tensor g_alpha, torch::Tensor g_object,
-                                                     torch::Tensor g_water);
+                                                     torch::Tensor opacities, torch::Tensor feats,
+                                                     torch::Tensor medium, int64_t width, int64_t height,
+                                                     int64_t tile_size, double alpha_max,
+                                                     std::vector<torch::Tensor> state, torch::Tensor g_restored,
+                                                     torch::Tensor g_depth, torch::Tensor g_alpha,
+                                                     torch::Tensor g_object, torch::Tensor g_water);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("project_forward", &project_forward);

@@ -36,10 +36,23 @@ inline TileRect tile_rect(const Bins& bins, int64_t t, int64_t width, int64_t he
   return {x0, y0, std::min(x0 + bins.tile, width) - x0, std::min(y0 + bins.tile, height) - y0};
 }
 
+// What a sibling compositor adds to the blending of TileForward / TileBackward (another image formation over the
+// same weights w = alpha T): nothing here, so 3DGS's compositing compiles as if there were no hook. A sibling's
+// hook (medium_compositing.cpp) is copied into each thread's tile and has these members:
+//   forward:  begin(rect) before a tile; blend(p, w, gaussian) per blended chunk (tile-plane offset p, the chunk's
+//             weights w, 0 in lanes not blended); end(tile) after it, writing its own images;
+//   backward: begin(tile) once the tile's planes are loaded; gaussian(id) before a Gaussian's chunks; per chunk
+//             dweight(p, w) -> its extra dL/dw per lane, then geometry(G, dx, dy, rec) with dL/dpower G;
+//             finish(row) after the Gaussian's chunks: kRow more values per slot row after TileBackward's 6 + F
+//             (it may add to the features' gradients there); end(tile) after the tile.
+struct NoExtra {
+  static constexpr int kRow = 0;
+};
+
 // The compositing forward of one tile at a time, with one thread's scratch: what composite_forward and PAUP's
 // masked L1 (masked_l1) share. After run(t): Tr holds the tile's final transmittance and acc its F channels then
 // the alpha sum (channel-major planes of `plane` values, rows padded to whole chunks, `stride` apart).
-template <typename T, int NF>
+template <typename T, int NF, typename Extra = NoExtra>
 struct TileForward : TileRect {  // the last tile's rectangle
   using V = typename Simd<T>::V;
   using I = typename Simd<T>::I;
@@ -65,6 +78,8 @@ struct TileForward : TileRect {  // the last tile's rectangle
   std::vector<int32_t> cnt, n_codes;
   std::vector<V> alphas;  // with keep_alphas: each code's blended alphas (0 in other lanes), indexed like buf
   bool keep_alphas = false;
+  Extra extra;  // a sibling compositor's blending (NoExtra: none)
+  static constexpr bool kExtra = !std::is_same_v<Extra, NoExtra>;
 
   TileForward(const Bins& bins_, const GaussRec<T>* recs_, const torch::Tensor& feats, int64_t width_,
               int64_t height_, double alpha_min_d, double alpha_max_d, double t_min_d)
@@ -164,6 +179,7 @@ struct TileForward : TileRect {  // the last tile's rectangle
           n_codes[jj] += mb != 0;
         }
         const V wgt = m ? alpha * tr : V{};
+        if constexpr (kExtra) extra.blend(p, wgt, ids[j0 + jj]);
         const T* f = ft + static_cast<int64_t>(ids[j0 + jj]) * F;
         // + 0 where not blended: bitwise a no-op (features are finite), cheaper than a blend
         for (int64_t ch = 0; ch < F; ++ch) {
@@ -189,12 +205,15 @@ struct TileForward : TileRect {  // the last tile's rectangle
   }
 };
 
-template <typename T, int NF>
+// `extra`: a sibling compositor's hook (NoExtra: none), copied into each thread's tile; begin(rect) before each
+// tile, end(rect) after it (it writes its own images).
+template <typename T, int NF, typename Extra = NoExtra>
 void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const torch::Tensor& feats, int64_t width,
                             int64_t height, double alpha_min, double alpha_max, double t_min,
                             torch::Tensor& render, torch::Tensor& depth, torch::Tensor& alpha_img,
                             torch::Tensor& final_t, torch::Tensor& slot_weight, torch::Tensor& slot_count,
-                            Trace* trace) {
+                            Trace* trace, const Extra& extra = Extra()) {
+  constexpr bool kExtra = !std::is_same_v<Extra, NoExtra>;
   T* rend = render.data_ptr<T>();  // [H, W, F - 1]: the features
   T* dimg = depth.data_ptr<T>();   // [H, W]: the last composited channel
   T* aimg = alpha_img.data_ptr<T>();
@@ -214,7 +233,8 @@ void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const tor
   }
 #pragma omp parallel if (pairs >= kParallelMin)
   {
-    TileForward<T, NF> tile(bins, recs, feats, width, height, alpha_min, alpha_max, t_min);
+    TileForward<T, NF, Extra> tile(bins, recs, feats, width, height, alpha_min, alpha_max, t_min);
+    if constexpr (kExtra) tile.extra = extra;
     const int64_t F = tile.F, plane = tile.plane;
     CodeBuf* buf = trace ? &bufs[omp_get_thread_num()] : nullptr;
 #pragma omp for schedule(dynamic, 1)
@@ -223,7 +243,9 @@ void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const tor
         tcodes[3 * t] = omp_get_thread_num();
         tcodes[3 * t + 1] = buf->size;
       }
+      if constexpr (kExtra) tile.extra.begin(tile_rect(bins, t, width, height));
       tile.run(t, sw, sc, pcodes, buf);
+      if constexpr (kExtra) tile.extra.end(tile);
       if (buf) tcodes[3 * t + 2] = buf->size;
       for (int64_t r = 0; r < tile.h; ++r)
         for (int64_t x = 0; x < tile.w; ++x) {
@@ -246,7 +268,7 @@ void composite_forward_impl(const Bins& bins, const GaussRec<T>* recs, const tor
 // acc); run() replays the forward's codes back to front. kAll: gradients of means2d, conics, opacities and features
 // into slot rows of 6 + F values; false: of the opacities only, one value per slot (a render whose Gaussians are
 // frozen), which skips the moment and per-channel sums.
-template <typename T, int NF, bool kAll>
+template <typename T, int NF, bool kAll, typename Extra = NoExtra>
 struct TileBackward : TileRect {  // the tile's rectangle
   using V = typename Simd<T>::V;
   using I = typename Simd<T>::I;
@@ -259,10 +281,13 @@ struct TileBackward : TileRect {  // the tile's rectangle
   I lane_bit;
   // Per pixel: transmittance in front of the current Gaussian, S = sum of w g behind it, the output gradients.
   std::vector<T> Tr, S, go;
+  Extra extra;  // a sibling compositor's blending (NoExtra: none)
+  static constexpr bool kExtra = !std::is_same_v<Extra, NoExtra>;
 
   TileBackward(const Bins& bins_, const GaussRec<T>* recs_, const torch::Tensor& feats, double alpha_max_d)
       : bins(bins_), recs(recs_), ft(feats.data_ptr<T>()), F(NF > 0 ? NF : feats.size(1)), ts(bins_.tile),
-        n_cols((ts + kLanes - 1) / kLanes), stride(n_cols * kLanes), plane(ts * stride), row(kAll ? 6 + F : 1),
+        n_cols((ts + kLanes - 1) / kLanes), stride(n_cols * kLanes), plane(ts * stride),
+        row(kAll ? 6 + F + Extra::kRow : 1),
         alpha_max(static_cast<T>(alpha_max_d)), floor_(static_cast<T>(kExpFloor)),
         tiny(std::numeric_limits<T>::min()), Tr(plane), S(plane), go((F + 1) * plane) {
     for (int i = 0; i < kLanes; ++i) {
@@ -300,6 +325,7 @@ struct TileBackward : TileRect {  // the tile's rectangle
       }
       const GaussRec<T>& g = recs[ids[j]];
       const T* f = ft + static_cast<int64_t>(ids[j]) * F;
+      if constexpr (kExtra) extra.gaussian(ids[j]);
       // Per-lane sums of dL/dpower G, G dx, G dy, G dx^2, G dx dy, G dy^2 and of w dL/dout per channel.
       V m0 = {}, m1 = {}, m2 = {}, m3 = {}, m4 = {}, m5 = {};
       V gf[NF > 0 ? NF : 64] = {};
@@ -328,12 +354,14 @@ struct TileBackward : TileRect {  // the tile's rectangle
         const V wgt = alpha * Tb;
         V gsum = vload<V>(&go[F * plane + p]);
         for (int64_t ch = 0; ch < F; ++ch) gsum += vload<V>(&go[ch * plane + p]) * f[ch];
+        if constexpr (kExtra) gsum += extra.dweight(p, wgt);
         const V wg = wgt * gsum;
         const V s = vload<V>(&S[p]);
         V G = wg - s * alpha / transmit;
         vstore(&S[p], V(m ? s + wg : s));
         G = (m & (alpha < alpha_max)) ? G : V{};
         m0 += G;
+        if constexpr (kExtra) extra.geometry(G, dx, dy, g);
         if constexpr (kAll) {
           const V Gdx = G * dx;
           const V Gdy = G * dy;
@@ -356,6 +384,7 @@ struct TileBackward : TileRect {  // the tile's rectangle
         out[4] = static_cast<T>(-0.5) * hsum<T>(m5);
         out[5] = g_opacity;
         for (int64_t ch = 0; ch < F; ++ch) out[6 + ch] = hsum<T>(gf[ch]);
+        if constexpr (kExtra) extra.finish(out);
       } else {
         out[0] = g_opacity;
       }
@@ -363,12 +392,15 @@ struct TileBackward : TileRect {  // the tile's rectangle
   }
 };
 
-template <typename T, int NF, bool kAll>
+// `extra`: as composite_forward_impl's (begin after the tile's planes are loaded, end after its run); with one,
+// tiles without Gaussians are visited too (their pixels may still have gradients to write).
+template <typename T, int NF, bool kAll, typename Extra = NoExtra>
 void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRec<T>* recs,
                              const torch::Tensor& feats, int64_t width, int64_t height, double alpha_max,
                              const torch::Tensor& final_t, const torch::Tensor& grad_render,
                              const torch::Tensor& grad_depth, const torch::Tensor& grad_alpha,
-                             torch::Tensor& slot_grad) {
+                             torch::Tensor& slot_grad, const Extra& extra = Extra()) {
+  constexpr bool kExtra = !std::is_same_v<Extra, NoExtra>;
   const T* ftT = final_t.data_ptr<T>();
   // Output gradients; an empty tensor stands for zeros (that output was not used).
   const T* grend = grad_render.numel() ? grad_render.data_ptr<T>() : nullptr;
@@ -383,11 +415,12 @@ void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRe
   const int64_t n_tiles = bins.tiles_x * bins.tiles_y;
 #pragma omp parallel if (bins.sorted_gauss.size(0) >= kParallelMin)
   {
-    TileBackward<T, NF, kAll> tile(bins, recs, feats, alpha_max);
+    TileBackward<T, NF, kAll, Extra> tile(bins, recs, feats, alpha_max);
+    if constexpr (kExtra) tile.extra = extra;
     const int64_t F = tile.F, plane = tile.plane;
 #pragma omp for schedule(dynamic, 1)
     for (int64_t t = 0; t < n_tiles; ++t) {
-      if (tstart[t + 1] == tstart[t]) continue;
+      if (tstart[t + 1] == tstart[t] && !kExtra) continue;
       tile.begin(t, width, height);
       for (int64_t r = 0; r < tile.h; ++r)
         for (int64_t x = 0; x < tile.w; ++x) {
@@ -398,7 +431,9 @@ void composite_backward_impl(const Bins& bins, const Trace& trace, const GaussRe
           if (gdep) tile.go[(F - 1) * plane + p] = gdep[q];
           if (galp) tile.go[F * plane + p] = galp[q];
         }
+      if constexpr (kExtra) tile.extra.begin(tile);
       tile.run(t, codes[tcodes[3 * t]], tcodes[3 * t + 2], pcodes, sgrad);
+      if constexpr (kExtra) tile.extra.end(tile);
     }
   }
 }

@@ -1,239 +1,294 @@
-// The medium compositor on the CPU (WaterSplatting's water between depth-sorted Gaussians): forward and hand-written
-// backward, numerically mirroring uw3dgs/render/medium_reference.py (see it and MediumRasterOutput for the maths).
-// It takes the screen-space Gaussians and the tile lists made by the shared projection and binning, and composites
-// each pixel front to back with the 3DGS rules (power <= 0, alpha_min, alpha_max, early termination) plus the water:
-//   restored = sum_i w_i c_i, object = sum_i w_i c_i exp(-sigma_attn z_i), water = c_med (1 - sum_i w_i exp(-sigma_bs z_i))
-// (the interval sum of the definition telescoped). Depths take no gradient. Parallel over tiles; per-(tile, Gaussian)
-// slots reduced per Gaussian in list order, so results do not depend on the thread count.
-#include <torch/extension.h>
+// The medium compositor on the CPU (WaterSplatting's water between depth-sorted Gaussians), forward and hand-written
+// backward, numerically mirroring uw3dgs/render/medium_reference.py (see it and MediumRasterOutput for the maths). A
+// sibling of compositing.cpp: the same Gaussian records, binning and SIMD tile structs (compositing.h), whose
+// blending of the restored colour, depth and alpha (3DGS's, features = colour + depth) is extended through their
+// hook by the water of each pixel:
+//   object = sum_i w_i c_i exp(-sigma_attn z_i), water = c_med (1 - sum_i w_i exp(-sigma_bs z_i))
+// (the interval sum of the definition telescoped), w_i = alpha_i T_i. Depths take no gradient. Per (tile, Gaussian)
+// slots reduced per Gaussian in a fixed order, so results do not depend on the thread count.
+#include "compositing.h"
 
-#include <algorithm>
-#include <cmath>
-#include <cstdint>
-#include <limits>
-#include <vector>
+using namespace uw3dgs_kernels;
 
 namespace {
 
-constexpr double kExpFloor = -80.0;
+constexpr int kColor = 3;       // the features: colour (3), then depth
+constexpr int kFeats = kColor + 1;
+constexpr int kMediumValues = 9;  // per pixel: c_med, sigma_bs, sigma_attn (3 each)
 
+// The water of one tile as planes shaped like the tile structs' (channel-major, rows padded to whole chunks):
+// -sigma_bs and -sigma_attn per channel (padding: 0), and the factors exp(-sigma z) of a Gaussian at depth z.
 template <typename T>
-struct Inputs {
-  const T *xy, *conic, *opac, *color, *depth, *medium;
-  const int64_t *starts, *counts, *ids;
-  int64_t width, height, tile, tiles_x, n_tiles;
-  T alpha_min, alpha_max, t_min;
-};
+struct WaterPlanes {
+  using V = typename Simd<T>::V;
+  const T* medium = nullptr;  // [H, W, 9]
+  const T* ft = nullptr;      // [N, 4]: colour, depth
+  int64_t width = 0, stride = 0, plane = 0;
+  std::vector<T> nbs, nat;  // 3 planes each
 
-template <typename T>
-Inputs<T> inputs(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opacities,
-                 const torch::Tensor& colors, const torch::Tensor& depths, const torch::Tensor& medium,
-                 const torch::Tensor& starts, const torch::Tensor& counts, const torch::Tensor& ids, int64_t width,
-                 int64_t height, int64_t tile, double alpha_min, double alpha_max, double t_min) {
-  const int64_t tiles_x = (width + tile - 1) / tile, tiles_y = (height + tile - 1) / tile;
-  TORCH_CHECK(starts.numel() == tiles_x * tiles_y && counts.numel() == tiles_x * tiles_y, "tile lists do not fit");
-  TORCH_CHECK(medium.size(0) == height && medium.size(1) == width && medium.size(2) == 9, "medium must be [H, W, 9]");
-  return {means2d.data_ptr<T>(), conics.data_ptr<T>(), opacities.data_ptr<T>(), colors.data_ptr<T>(),
-          depths.data_ptr<T>(), medium.data_ptr<T>(), starts.data_ptr<int64_t>(), counts.data_ptr<int64_t>(),
-          ids.data_ptr<int64_t>(), width, height, tile, tiles_x, tiles_x * tiles_y,
-          static_cast<T>(alpha_min), static_cast<T>(alpha_max), static_cast<T>(t_min)};
-}
+  WaterPlanes() = default;
+  WaterPlanes(const torch::Tensor& medium_, const torch::Tensor& feats, const Bins& bins, int64_t width_)
+      : medium(medium_.data_ptr<T>()), ft(feats.data_ptr<T>()), width(width_),
+        stride((bins.tile + kLanes - 1) / kLanes * kLanes), plane(bins.tile * stride) {}
 
-// One blended Gaussian of a pixel: its position in the tile list, alpha, the transmittance in front of it, and
-// (for the backward) dx, dy.
-template <typename T>
-struct Hit {
-  int64_t j;
-  T alpha, T_before, dx, dy;
-};
+  // Pixel q of the image for tile-plane offset p = r * stride + x.
+  int64_t pixel(const TileRect& rect, int64_t r, int64_t x) const { return (rect.y0 + r) * width + rect.x0 + x; }
 
-// The pixel (px, py) (its centre) walked front to back over tile t's list: its blended Gaussians in order.
-template <typename T>
-void walk(const Inputs<T>& in, int64_t t, T px, T py, std::vector<Hit<T>>& hits) {
-  hits.clear();
-  const int64_t start = in.starts[t], k = in.counts[t];
-  T tr = 1;
-  for (int64_t j = 0; j < k; ++j) {
-    const int64_t g = in.ids[start + j];
-    const T dx = px - in.xy[2 * g], dy = py - in.xy[2 * g + 1];
-    const T a = in.conic[3 * g], b = in.conic[3 * g + 1], c = in.conic[3 * g + 2];
-    const T log_op = std::log(in.opac[g]);
-    // log(opacity) + power, in the reference's order: (-c dy^2/2 + log op) + (-a dx^2/2) + (-b dy) dx
-    const T e = ((static_cast<T>(-0.5) * c * dy * dy + log_op) + static_cast<T>(-0.5) * a * dx * dx) + (-b * dy) * dx;
-    if (!(e <= log_op)) continue;  // power > 0 (or NaN)
-    T alpha = std::exp(std::max(e, static_cast<T>(kExpFloor)));
-    alpha = std::min(alpha, in.alpha_max);
-    if (!(alpha >= in.alpha_min)) continue;
-    const T t_next = tr * (static_cast<T>(1) - alpha);
-    if (!(t_next >= in.t_min)) break;  // early termination: this one and all behind it are dropped
-    hits.push_back({j, alpha, tr, dx, dy});
-    tr = t_next;
-  }
-}
-
-template <typename T>
-void forward_impl(const Inputs<T>& in, T* restored, T* depth, T* alpha_img, T* object, T* water, T* slot_w,
-                  int32_t* slot_n) {
-  const int64_t W = in.width;
-#pragma omp parallel
-  {
-    std::vector<Hit<T>> hits;
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < in.n_tiles; ++t) {
-      const int64_t x0 = (t % in.tiles_x) * in.tile, y0 = (t / in.tiles_x) * in.tile, start = in.starts[t];
-      for (int64_t j = 0; j < in.counts[t]; ++j) {
-        slot_w[start + j] = 0;
-        slot_n[start + j] = 0;
+  void load(const TileRect& rect) {
+    nbs.assign(kColor * plane, static_cast<T>(0));
+    nat.assign(kColor * plane, static_cast<T>(0));
+    for (int64_t r = 0; r < rect.h; ++r)
+      for (int64_t x = 0; x < rect.w; ++x) {
+        const T* med = medium + kMediumValues * pixel(rect, r, x);
+        for (int c = 0; c < kColor; ++c) {
+          nbs[c * plane + r * stride + x] = -med[3 + c];
+          nat[c * plane + r * stride + x] = -med[6 + c];
+        }
       }
-      for (int64_t y = y0; y < std::min(y0 + in.tile, in.height); ++y)
-        for (int64_t x = x0; x < std::min(x0 + in.tile, W); ++x) {
-          walk(in, t, static_cast<T>(x) + static_cast<T>(0.5), static_cast<T>(y) + static_cast<T>(0.5), hits);
-          const int64_t q = y * W + x;
-          const T* med = in.medium + 9 * q;
-          T rest[3] = {0, 0, 0}, obj[3] = {0, 0, 0}, scat[3] = {0, 0, 0}, d = 0, a = 0;
-          for (const Hit<T>& h : hits) {
-            const int64_t g = in.ids[start + h.j];
-            const T w = h.alpha * h.T_before, z = in.depth[g];
-            for (int c = 0; c < 3; ++c) {
-              const T col = in.color[3 * g + c];
-              rest[c] += w * col;
-              obj[c] += w * col * std::exp(-med[6 + c] * z);
-              scat[c] += w * std::exp(-med[3 + c] * z);
-            }
-            d += w * z;
-            a += w;
-            slot_w[start + h.j] += w;
-            slot_n[start + h.j] += 1;
-          }
-          for (int c = 0; c < 3; ++c) {
-            restored[3 * q + c] = rest[c];
-            object[3 * q + c] = obj[c];
-            water[3 * q + c] = med[c] * (static_cast<T>(1) - scat[c]);
-          }
-          depth[q] = d;
-          alpha_img[q] = a;
-        }
-    }
   }
-}
 
-constexpr int kRow = 11;  // per slot: mean x, y, conic a, b, c, opacity, colour r, g, b, |d mean x|, |d mean y|
+  // exp(-sigma z) at the kLanes pixels from p of channel plane `ns`; exponents below kExpFloor are floored (the
+  // factor is then below 2e-35: nothing to the sums).
+  V factor(const std::vector<T>& ns, int c, int64_t p, T z) const {
+    const V x = vload<V>(&ns[c * plane + p]) * z;
+    return vexp(V(x < static_cast<T>(kExpFloor) ? splat<V>(static_cast<T>(kExpFloor)) : x));
+  }
+};
 
+// The forward's hook: per pixel sum_i w_i c_i exp(-sigma_attn z_i) and sum_i w_i exp(-sigma_bs z_i); at the end of
+// a tile, object and water into their images.
 template <typename T>
-void backward_impl(const Inputs<T>& in, const T* g_rest, const T* g_depth, const T* g_alpha, const T* g_obj,
-                   const T* g_water, T* slots, T* g_medium) {
-  const int64_t W = in.width;
-#pragma omp parallel
-  {
-    std::vector<Hit<T>> hits;
-#pragma omp for schedule(dynamic, 1)
-    for (int64_t t = 0; t < in.n_tiles; ++t) {
-      const int64_t x0 = (t % in.tiles_x) * in.tile, y0 = (t / in.tiles_x) * in.tile, start = in.starts[t];
-      std::fill(slots + start * kRow, slots + (start + in.counts[t]) * kRow, static_cast<T>(0));
-      for (int64_t y = y0; y < std::min(y0 + in.tile, in.height); ++y)
-        for (int64_t x = x0; x < std::min(x0 + in.tile, W); ++x) {
-          walk(in, t, static_cast<T>(x) + static_cast<T>(0.5), static_cast<T>(y) + static_cast<T>(0.5), hits);
-          const int64_t q = y * W + x;
-          const T* med = in.medium + 9 * q;
-          const T *gr = g_rest + 3 * q, *go = g_obj + 3 * q, *gw = g_water + 3 * q;
-          T gm[3];  // dL / d(sum_i w_i exp(-sigma_bs z_i)) = -g_water c_med
-          for (int c = 0; c < 3; ++c) gm[c] = gw[c] * med[c];
-          T scat[3] = {0, 0, 0}, scat_z[3] = {0, 0, 0}, att_z[3] = {0, 0, 0};
-          T S = 0;  // sum over the Gaussians behind of w_j dL/dw_j
-          for (auto h = hits.rbegin(); h != hits.rend(); ++h) {
-            const int64_t g = in.ids[start + h->j];
-            const T w = h->alpha * h->T_before, z = in.depth[g];
-            T gw_i = g_depth[q] * z + g_alpha[q];  // dL/dw_i
-            T* row = slots + (start + h->j) * kRow;
-            for (int c = 0; c < 3; ++c) {
-              const T col = in.color[3 * g + c];
-              const T ea = std::exp(-med[6 + c] * z), eb = std::exp(-med[3 + c] * z);
-              gw_i += gr[c] * col + go[c] * col * ea - gm[c] * eb;
-              row[6 + c] += w * (gr[c] + go[c] * ea);
-              scat[c] += w * eb;
-              scat_z[c] += w * z * eb;
-              att_z[c] += w * col * z * ea;
-            }
-            // dL/dalpha_i = T_i g_i - S_i / (1 - alpha_i); dL/dpower = alpha dL/dalpha (0 where clamped)
-            const T g_alpha_i = h->T_before * gw_i - S / (static_cast<T>(1) - h->alpha);
-            S += w * gw_i;
-            const T G = h->alpha < in.alpha_max ? h->alpha * g_alpha_i : static_cast<T>(0);
-            const T a = in.conic[3 * g], b = in.conic[3 * g + 1], c = in.conic[3 * g + 2];
-            const T dx = h->dx, dy = h->dy;
-            const T gx = G * (a * dx + b * dy), gy = G * (b * dx + c * dy);
-            row[0] += gx;
-            row[1] += gy;
-            row[2] += static_cast<T>(-0.5) * G * dx * dx;
-            row[3] += -G * dx * dy;
-            row[4] += static_cast<T>(-0.5) * G * dy * dy;
-            row[5] += G / std::max(in.opac[g], std::numeric_limits<T>::min());
-            row[9] += std::abs(gx);
-            row[10] += std::abs(gy);
-          }
-          T* gmed = g_medium + 9 * q;
-          for (int c = 0; c < 3; ++c) {
-            gmed[c] = gw[c] * (static_cast<T>(1) - scat[c]);
-            gmed[3 + c] = gm[c] * scat_z[c];
-            gmed[6 + c] = -go[c] * att_z[c];
-          }
-        }
+struct WaterForward : WaterPlanes<T> {
+  using V = typename Simd<T>::V;
+  using Base = WaterPlanes<T>;
+  static constexpr int kRow = 0;
+  T *object = nullptr, *water = nullptr;  // [H, W, 3]
+  std::vector<T> obj, scat;             // 3 planes each
+
+  WaterForward() = default;
+  WaterForward(const torch::Tensor& medium_, const torch::Tensor& feats, const Bins& bins, int64_t width_,
+               torch::Tensor& object_, torch::Tensor& water_)
+      : Base(medium_, feats, bins, width_), object(object_.data_ptr<T>()), water(water_.data_ptr<T>()) {}
+
+  void begin(const TileRect& rect) {
+    this->load(rect);
+    obj.assign(kColor * this->plane, static_cast<T>(0));
+    scat.assign(kColor * this->plane, static_cast<T>(0));
+  }
+
+  void blend(int64_t p, const V& w, int32_t id) {
+    const T* f = this->ft + static_cast<int64_t>(id) * kFeats;
+    const T z = f[kColor];
+    for (int c = 0; c < kColor; ++c) {
+      T* o = &obj[c * this->plane + p];
+      T* s = &scat[c * this->plane + p];
+      vstore(o, V(vload<V>(o) + (this->factor(this->nat, c, p, z) * f[c]) * w));
+      vstore(s, V(vload<V>(s) + this->factor(this->nbs, c, p, z) * w));
     }
   }
-}
 
-torch::Tensor c64(const torch::Tensor& t) { return t.to(torch::kInt64).contiguous(); }
+  void end(const TileRect& rect) {
+    for (int64_t r = 0; r < rect.h; ++r)
+      for (int64_t x = 0; x < rect.w; ++x) {
+        const int64_t q = this->pixel(rect, r, x), p = r * this->stride + x;
+        const T* med = this->medium + kMediumValues * q;
+        for (int c = 0; c < kColor; ++c) {
+          object[kColor * q + c] = obj[c * this->plane + p];
+          water[kColor * q + c] = med[c] * (static_cast<T>(1) - scat[c * this->plane + p]);
+        }
+      }
+  }
+};
+
+// The backward's hook. Per (pixel, Gaussian i): dL/dw_i gains sum_c g_obj,c c_i,c exp(-sigma_attn z_i) - g_water,c
+// c_med,c exp(-sigma_bs z_i); the colour's gradient w_i g_obj exp(-sigma_attn z_i). Per pixel it sums what the
+// medium's gradient needs (sum w e_bs, sum w z e_bs, sum w c z e_attn) and writes it at the end of the tile; per
+// slot, 2 more values: the sums of |dL/dmeans2d| over pixels (x, y; absolute-gradient densification).
+template <typename T>
+struct WaterBackward : WaterPlanes<T> {
+  using V = typename Simd<T>::V;
+  using Base = WaterPlanes<T>;
+  static constexpr int kRow = 2;
+  const T *g_obj = nullptr, *g_water = nullptr;  // [H, W, 3]
+  T* g_medium = nullptr;                         // [H, W, 9]
+  std::vector<T> go, gm, scat, scat_z, att_z;    // 3 planes each; gm = g_water c_med
+  T z = 0, col[kColor] = {};
+  V gcol[kColor] = {}, abs_x = {}, abs_y = {};
+
+  WaterBackward() = default;
+  WaterBackward(const torch::Tensor& medium_, const torch::Tensor& feats, const Bins& bins, int64_t width_,
+                const torch::Tensor& g_obj_, const torch::Tensor& g_water_, torch::Tensor& g_medium_)
+      : Base(medium_, feats, bins, width_), g_obj(g_obj_.data_ptr<T>()), g_water(g_water_.data_ptr<T>()),
+        g_medium(g_medium_.data_ptr<T>()) {}
+
+  void begin(const TileRect& rect) {
+    this->load(rect);
+    const int64_t n = kColor * this->plane;
+    go.assign(n, static_cast<T>(0));
+    gm.assign(n, static_cast<T>(0));
+    scat.assign(n, static_cast<T>(0));
+    scat_z.assign(n, static_cast<T>(0));
+    att_z.assign(n, static_cast<T>(0));
+    for (int64_t r = 0; r < rect.h; ++r)
+      for (int64_t x = 0; x < rect.w; ++x) {
+        const int64_t q = this->pixel(rect, r, x), p = r * this->stride + x;
+        for (int c = 0; c < kColor; ++c) {
+          go[c * this->plane + p] = g_obj[kColor * q + c];
+          gm[c * this->plane + p] = g_water[kColor * q + c] * this->medium[kMediumValues * q + c];
+        }
+      }
+  }
+
+  void gaussian(int32_t id) {
+    const T* f = this->ft + static_cast<int64_t>(id) * kFeats;
+    for (int c = 0; c < kColor; ++c) {
+      col[c] = f[c];
+      gcol[c] = V{};
+    }
+    z = f[kColor];
+    abs_x = abs_y = V{};
+  }
+
+  V dweight(int64_t p, const V& w) {
+    V d{};
+    const V wz = w * z;
+    for (int c = 0; c < kColor; ++c) {
+      const int64_t o = c * this->plane + p;
+      const V ea = this->factor(this->nat, c, p, z), eb = this->factor(this->nbs, c, p, z);
+      const V g_att = vload<V>(&go[o]) * ea;
+      d += g_att * col[c] - vload<V>(&gm[o]) * eb;
+      gcol[c] += w * g_att;
+      vstore(&scat[o], V(vload<V>(&scat[o]) + w * eb));
+      vstore(&scat_z[o], V(vload<V>(&scat_z[o]) + wz * eb));
+      vstore(&att_z[o], V(vload<V>(&att_z[o]) + (wz * col[c]) * ea));
+    }
+    return d;
+  }
+
+  void geometry(const V& G, const V& dx, T dy, const GaussRec<T>& g) {
+    const V gx = G * (g.a * dx + g.b * dy), gy = G * (g.b * dx + g.c * dy);
+    abs_x += gx < static_cast<T>(0) ? -gx : gx;
+    abs_y += gy < static_cast<T>(0) ? -gy : gy;
+  }
+
+  void finish(T* row) {
+    for (int c = 0; c < kColor; ++c) row[6 + c] += hsum<T>(gcol[c]);
+    row[6 + kFeats] = hsum<T>(abs_x);
+    row[6 + kFeats + 1] = hsum<T>(abs_y);
+  }
+
+  void end(const TileRect& rect) {
+    for (int64_t r = 0; r < rect.h; ++r)
+      for (int64_t x = 0; x < rect.w; ++x) {
+        const int64_t q = this->pixel(rect, r, x), p = r * this->stride + x;
+        T* gmed = g_medium + kMediumValues * q;
+        for (int c = 0; c < kColor; ++c) {
+          const int64_t o = c * this->plane + p;
+          gmed[c] = g_water[kColor * q + c] * (static_cast<T>(1) - scat[o]);
+          gmed[3 + c] = gm[o] * scat_z[o];
+          gmed[6 + c] = -go[o] * att_z[o];
+        }
+      }
+  }
+};
+
+void check_medium(const torch::Tensor& medium, const torch::Tensor& feats, int64_t width, int64_t height) {
+  TORCH_CHECK(medium.dim() == 3 && medium.size(0) == height && medium.size(1) == width &&
+                  medium.size(2) == kMediumValues,
+              "medium must be [H, W, 9] (c_med, sigma_bs, sigma_attn)");
+  TORCH_CHECK(feats.dim() == 2 && feats.size(1) == kFeats, "the medium compositor's features are [N, 4]: colour, depth");
+  TORCH_CHECK(medium.scalar_type() == feats.scalar_type(), "medium and features must share a dtype");
+}
 
 }  // namespace
 
+// Bins and composites with the water. feats [N, 4]: colour, then depth (detached: depths take no gradient); medium
+// [H, W, 9]. Returns restored [H, W, 3], depth, alpha [H, W], object, water [H, W, 3], weight_sum [N], pixel_count
+// [N] int32, then, when `for_backward`, composite_forward's state for the backward.
 std::vector<torch::Tensor> medium_composite_forward(torch::Tensor means2d, torch::Tensor conics,
-                                                    torch::Tensor opacities, torch::Tensor colors,
-                                                    torch::Tensor depths, torch::Tensor medium,
-                                                    torch::Tensor tile_starts, torch::Tensor tile_counts,
-                                                    torch::Tensor gauss_ids, int64_t width, int64_t height,
-                                                    int64_t tile, double alpha_min, double alpha_max, double t_min) {
-  const auto opts = means2d.options();
-  const int64_t n = means2d.size(0), pairs = gauss_ids.numel();
-  auto starts = c64(tile_starts), counts = c64(tile_counts), ids = c64(gauss_ids);
-  auto restored = torch::empty({height, width, 3}, opts), object = torch::empty({height, width, 3}, opts);
-  auto water = torch::empty({height, width, 3}, opts);
-  auto depth = torch::empty({height, width}, opts), alpha = torch::empty({height, width}, opts);
-  auto slot_w = torch::empty({pairs}, opts);
-  auto slot_n = torch::empty({pairs}, opts.dtype(torch::kInt32));
+                                                    torch::Tensor opacities, torch::Tensor feats,
+                                                    torch::Tensor depths, torch::Tensor radii, torch::Tensor medium,
+                                                    int64_t width, int64_t height, int64_t tile_size,
+                                                    double alpha_min, double alpha_max, double t_min,
+                                                    bool for_backward) {
+  for (auto* p : {&means2d, &conics, &opacities, &feats, &depths, &radii, &medium}) check_cpu(*p, "input");
+  check_medium(medium, feats, width, height);
+  TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
+  const int64_t n = means2d.size(0);
+  auto opts = means2d.options();
+  auto restored = torch::empty({height, width, kColor}, opts);
+  auto object = torch::empty({height, width, kColor}, opts);
+  auto water = torch::empty({height, width, kColor}, opts);
+  auto depth = torch::empty({height, width}, opts);
+  auto alpha = torch::empty({height, width}, opts);
+  auto final_t = torch::empty({height, width}, opts);
+  auto weight_sum = torch::empty({n}, opts);
+  auto pixel_count = torch::empty({n}, opts.dtype(torch::kInt32));
+  Bins bins;
+  Trace trace;
+  torch::Tensor recs;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "medium_composite_forward", [&] {
-    const auto in = inputs<scalar_t>(means2d, conics, opacities, colors, depths, medium, starts, counts, ids, width,
-                                     height, tile, alpha_min, alpha_max, t_min);
-    forward_impl<scalar_t>(in, restored.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                           alpha.data_ptr<scalar_t>(), object.data_ptr<scalar_t>(), water.data_ptr<scalar_t>(),
-                           slot_w.data_ptr<scalar_t>(), slot_n.data_ptr<int32_t>());
+    using T = scalar_t;
+    recs = gauss_records<T>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
+    bins = tile_lists_for<T>(means2d, depths, radii, records_of<T>(recs), width, height, tile_size, {});
+    const int64_t pairs = bins.sorted_gauss.size(0);
+    auto slot_weight = torch::empty({pairs}, opts);
+    auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
+    composite_forward_impl<T, kFeats>(bins, records_of<T>(recs), feats, width, height, alpha_min, alpha_max, t_min,
+                                      restored, depth, alpha, final_t, slot_weight, slot_count,
+                                      for_backward ? &trace : nullptr,
+                                      WaterForward<T>(medium, feats, bins, width, object, water));
+    reduce_slots<T>(bins.gauss_starts, slot_weight, weight_sum);
+    reduce_slots<int32_t>(bins.gauss_starts, slot_count, pixel_count);
   });
-  // per Gaussian, in list order: independent of the thread count
-  auto weight_sum = torch::zeros({n}, opts).index_add_(0, ids, slot_w);
-  auto pixel_count = torch::zeros({n}, opts.dtype(torch::kInt32)).index_add_(0, ids, slot_n);
-  return {restored, depth, alpha, object, water, weight_sum, pixel_count};
+  std::vector<torch::Tensor> out = {restored, depth, alpha, object, water, weight_sum, pixel_count};
+  if (for_backward) {
+    for (const auto& t : {final_t, bins.tile_starts, bins.sorted_gauss, bins.sorted_slot, bins.gauss_starts, recs,
+                          trace.pair_codes, trace.tile_codes})
+      out.push_back(t);
+    for (const auto& t : trace.codes) out.push_back(t);
+  }
+  return out;
 }
 
+// Takes medium_composite_forward's state and the gradients of its five images (each given, zeros where unused);
+// returns the gradients of means2d [N, 2], conics [N, 3], opacities [N], colours [N, 3], the medium [H, W, 9], and
+// per Gaussian the sums over pixels of |dL/dmeans2d| [N, 2].
 std::vector<torch::Tensor> medium_composite_backward(torch::Tensor means2d, torch::Tensor conics,
-                                                     torch::Tensor opacities, torch::Tensor colors,
-                                                     torch::Tensor depths, torch::Tensor medium,
-                                                     torch::Tensor tile_starts, torch::Tensor tile_counts,
-                                                     torch::Tensor gauss_ids, int64_t width, int64_t height,
-                                                     int64_t tile, double alpha_min, double alpha_max, double t_min,
-                                                     torch::Tensor g_restored, torch::Tensor g_depth,
-                                                     torch::Tensor g_alpha, torch::Tensor g_object,
-                                                     torch::Tensor g_water) {
-  const auto opts = means2d.options();
-  const int64_t n = means2d.size(0), pairs = gauss_ids.numel();
-  auto starts = c64(tile_starts), counts = c64(tile_counts), ids = c64(gauss_ids);
-  auto slots = torch::empty({pairs, kRow}, opts);
-  auto g_medium = torch::empty({height, width, 9}, opts);
+                                                     torch::Tensor opacities, torch::Tensor feats,
+                                                     torch::Tensor medium, int64_t width, int64_t height,
+                                                     int64_t tile_size, double alpha_max,
+                                                     std::vector<torch::Tensor> state, torch::Tensor g_restored,
+                                                     torch::Tensor g_depth, torch::Tensor g_alpha,
+                                                     torch::Tensor g_object, torch::Tensor g_water) {
+  for (auto* p : {&means2d, &conics, &opacities, &feats, &medium, &g_restored, &g_depth, &g_alpha, &g_object,
+                  &g_water})
+    check_cpu(*p, "input");
+  check_medium(medium, feats, width, height);
+  TORCH_CHECK(state.size() >= 8, "medium_composite_backward: incomplete forward state");
+  const int64_t n = means2d.size(0);
+  const torch::Tensor& final_t = state[0];
+  const Bins bins = bins_from(state.data() + 1, width, height, tile_size);
+  const torch::Tensor& recs = state[5];
+  Trace trace;
+  trace.pair_codes = state[6];
+  trace.tile_codes = state[7];
+  trace.codes.assign(state.begin() + 8, state.end());
+  auto opts = means2d.options();
+  const int64_t row = 6 + kFeats + WaterBackward<float>::kRow;
+  auto grads = torch::empty({n, row}, opts);
+  auto g_medium = torch::empty({height, width, kMediumValues}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "medium_composite_backward", [&] {
-    const auto in = inputs<scalar_t>(means2d, conics, opacities, colors, depths, medium, starts, counts, ids, width,
-                                     height, tile, alpha_min, alpha_max, t_min);
-    backward_impl<scalar_t>(in, g_restored.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(),
-                            g_alpha.data_ptr<scalar_t>(), g_object.data_ptr<scalar_t>(),
-                            g_water.data_ptr<scalar_t>(), slots.data_ptr<scalar_t>(), g_medium.data_ptr<scalar_t>());
+    using T = scalar_t;
+    auto slot_grad = torch::empty({bins.sorted_gauss.size(0), row}, opts);
+    composite_backward_impl<T, kFeats, true>(bins, trace, records_of<T>(recs), feats, width, height, alpha_max,
+                                             final_t, g_restored, g_depth, g_alpha, slot_grad,
+                                             WaterBackward<T>(medium, feats, bins, width, g_object, g_water,
+                                                              g_medium));
+    reduce_slots<T>(bins.gauss_starts, slot_grad, grads);
   });
-  auto grads = torch::zeros({n, kRow}, opts).index_add_(0, ids, slots);
-  return {grads.slice(1, 0, 2).contiguous(), grads.slice(1, 2, 5).contiguous(), grads.select(1, 5).contiguous(),
-          grads.slice(1, 6, 9).contiguous(), g_medium, grads.slice(1, 9, 11).contiguous()};
+  using torch::indexing::Slice;
+  return {grads.index({Slice(), Slice(0, 2)}), grads.index({Slice(), Slice(2, 5)}), grads.index({Slice(), 5}),
+          grads.index({Slice(), Slice(6, 6 + kColor)}), g_medium,
+          grads.index({Slice(), Slice(6 + kFeats, 6 + kFeats + 2)})};
 }

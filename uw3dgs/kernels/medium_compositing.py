@@ -1,7 +1,7 @@
 """WaterSplatting's medium compositor, compiled (`medium_compositing.cpp`): the same numbers as
 `uw3dgs/render/medium_reference.py` (float rounding aside) with a hand-written C++ backward; a sibling of
-`compositing.py` that shares the compiled projection (`projection.py`, so `means2d` stays in the graph) and the
-reference's binning (`reference.bin_gaussians`), and replaces only the compositing.
+`compositing.py` that shares the compiled projection (`projection.py`, so `means2d` stays in the graph), the
+compiled binning and the SIMD tile structs of the 3DGS compositing, and adds the water through their hook.
 """
 
 from __future__ import annotations
@@ -14,8 +14,6 @@ from uw3dgs.kernels.build import extension, runs_on
 from uw3dgs.kernels.compositing import MAX_TILE
 from uw3dgs.kernels.projection import project
 from uw3dgs.render.medium_types import MediumRasterOutput, PixelMedium
-from uw3dgs.render.projection import Projection
-from uw3dgs.render.reference import bin_gaussians
 from uw3dgs.render.types import RasterSettings
 
 
@@ -25,15 +23,18 @@ def takes(means: Tensor, settings: RasterSettings) -> bool:
 
 
 class _CompositeMedium(torch.autograd.Function):
+    """Outputs restored [H, W, 3], depth, alpha [H, W], object, water [H, W, 3], weight_sum and pixel_count [N];
+    gradients to means2d, conics, opacities, colours and the [H, W, 9] medium (none to depths)."""
+
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, colors, depths, medium, bins, width, height, settings, absgrad):
-        ext = extension()
-        lists = (bins.tile_starts, bins.tile_counts, bins.gauss_ids)
-        view = (width, height, settings.tile_size, settings.alpha_min, settings.alpha_max, settings.transmittance_min)
-        restored, depth, alpha, obj, water, weight_sum, pixel_count = ext.medium_composite_forward(
-            means2d, conics, opacities, colors, depths, medium, *lists, *view)
-        ctx.save_for_backward(means2d, conics, opacities, colors, depths, medium, *lists)
-        ctx.view = view
+    def forward(ctx, means2d, conics, opacities, colors, depths, radii, medium, width, height, settings, absgrad):
+        feats = torch.cat([colors, depths[:, None]], dim=1)  # the depth image composites like a colour
+        for_backward = any(ctx.needs_input_grad[:4]) or ctx.needs_input_grad[6]  # else no trace is recorded
+        restored, depth, alpha, obj, water, weight_sum, pixel_count, *state = extension().medium_composite_forward(
+            means2d, conics, opacities, feats, depths, radii, medium, width, height, settings.tile_size,
+            settings.alpha_min, settings.alpha_max, settings.transmittance_min, for_backward)
+        ctx.save_for_backward(means2d, conics, opacities, feats, medium, *state)
+        ctx.view = (width, height, settings.tile_size, settings.alpha_max)
         ctx.absgrad = absgrad
         ctx.mark_non_differentiable(weight_sum, pixel_count)
         return restored, depth, alpha, obj, water, weight_sum, pixel_count
@@ -41,17 +42,17 @@ class _CompositeMedium(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_restored, g_depth, g_alpha, g_obj, g_water, _g_weight_sum, _g_pixel_count):
-        *inputs, starts, counts, ids = ctx.saved_tensors
-        height, width = inputs[5].shape[:2]
-        grads = [torch.zeros(shape, dtype=inputs[0].dtype) if g is None else g.contiguous()
+        means2d, conics, opacities, feats, medium, *state = ctx.saved_tensors
+        height, width = medium.shape[:2]
+        grads = [torch.zeros(shape, dtype=means2d.dtype) if g is None else g.contiguous()
                  for g, shape in ((g_restored, (height, width, 3)), (g_depth, (height, width)),
                                   (g_alpha, (height, width)), (g_obj, (height, width, 3)),
                                   (g_water, (height, width, 3)))]
-        g_means2d, g_conics, g_opacities, g_colors, g_medium, abs_sums = (
-            extension().medium_composite_backward(*inputs, starts, counts, ids, *ctx.view, *grads))
+        g_means2d, g_conics, g_opacities, g_colors, g_medium, abs_sums = extension().medium_composite_backward(
+            means2d, conics, opacities, feats, medium, *ctx.view, state, *grads)
         if ctx.absgrad is not None:
             ctx.absgrad += abs_sums
-        return g_means2d, g_conics, g_opacities, g_colors, None, g_medium, *[None] * 5
+        return g_means2d, g_conics, g_opacities, g_colors, None, None, g_medium, *[None] * 4
 
 
 def rasterize_medium_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
@@ -65,11 +66,9 @@ def rasterize_medium_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities
     viewmat, K = (t.detach().to(dtype).contiguous() for t in (viewmat, K))
     means2d, conics, depths, radii = project(means, quats, scales, opacities.detach(), viewmat, K, width, height,
                                              settings)
-    proj = Projection(means2d=means2d, conics=conics, depths=depths, radii=radii, valid=radii > 0)
-    bins = bin_gaussians(proj, width, height, settings.tile_size)
     abs_buffer = means.new_zeros(len(means), 2) if absgrad else None
     restored, depth, alpha, obj, water, weight_sum, pixel_count = _CompositeMedium.apply(
-        means2d, conics, opacities, colors, depths.detach(), medium.packed().to(dtype).contiguous(), bins, width,
+        means2d, conics, opacities, colors, depths.detach(), radii, medium.packed().to(dtype).contiguous(), width,
         height, settings, abs_buffer)
     return MediumRasterOutput(render=restored, alpha=alpha, depth=depth, means2d=means2d, radii=radii, depths=depths,
                               conics=conics, weight_sum=weight_sum, pixel_count=pixel_count, object=obj,
