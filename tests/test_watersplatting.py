@@ -12,7 +12,7 @@ from test_densification import make
 from test_floaters import plane_scene
 
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.direction_medium import DirectionMedium, DirectionMediumConfig
+from uw3dgs.fields.direction_medium import DirectionMedium, DirectionMediumConfig, _SigmoidMLP
 from uw3dgs.fields.gaussians import PARAM_NAMES
 from uw3dgs.methods.watersplatting import MediumResettingDensityControl, WaterSplattingModelConfig
 from uw3dgs.metrics.image import ssim
@@ -102,6 +102,26 @@ def test_direction_medium_encoding_and_ranges():
     assert ((color > 0) & (color < 1)).all() and (bs > 0).all() and (attn > 0).all()
     layers = [m for m in medium.mlp if isinstance(m, torch.nn.Linear)]
     assert [(m.in_features, m.out_features) for m in layers] == [(16, 128), (128, 9)]
+
+
+@pytest.mark.parametrize("num_layers", [1, 2, 3])
+def test_direction_medium_mlp_equals_the_module_with_its_gradients(num_layers: int) -> None:
+    """The feature-major MLP with its hand-written backward (what `DirectionMedium` runs) is its nn.Sequential:
+    outputs, weight and input gradients in float64, and gradcheck."""
+    torch.manual_seed(0)
+    medium = DirectionMedium(DirectionMediumConfig(num_layers=num_layers, hidden_dim=8)).double()
+    x = torch.randn(37, 16, dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(37, 9, dtype=torch.float64)
+    params = [p for layer in medium.mlp if isinstance(layer, torch.nn.Linear) for p in (layer.weight, layer.bias)]
+    got = _SigmoidMLP.apply(x, *params)
+    want = medium.mlp(x)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    got_grads = torch.autograd.grad((got * weights).sum(), [x, *params])
+    want_grads = torch.autograd.grad((want * weights).sum(), [x, *params])
+    for g, w in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12)
+    small = [t.detach()[:5].clone().requires_grad_(True) if i == 0 else t for i, t in enumerate([x, *params])]
+    assert torch.autograd.gradcheck(lambda *a: _SigmoidMLP.apply(*a), small)
 
 
 def _model():

@@ -78,8 +78,12 @@ inline Simd<float>::V vexp(Simd<float>::V x) {
   using I = Simd<float>::I;
   V q;
   const V u = exp_f32_reduced(x, q);
+#ifdef __AVX512F__
+  return _mm512_scalef_ps(u, q);  // u 2^q in one instruction: the same rounding as the product below
+#else
   const I scale = (__builtin_convertvector(q, I) + 127) << 23;  // 2^q, a normal float for |q| <= 126
   return u * (V)scale;  // a vector cast reinterprets the bits
+#endif
 }
 
 inline Simd<double>::V vexp(Simd<double>::V x) {
