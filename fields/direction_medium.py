@@ -34,40 +34,55 @@ class DirectionMediumConfig(CheckedConfig):
         check_number(self, "hidden_dim", ge=1, integer=True)
 
 
+ROWS_PER_BLOCK = 2048
+"""Rows (pixels) `_SigmoidMLP` works on at a time: a block's hidden activations ([width, rows]) stay in a core's cache
+between the products of the forward and of the backward."""
+
+
 class _SigmoidMLP(torch.autograd.Function):
     """`DirectionMedium.mlp` (Linear, Sigmoid, ..., Linear) on rows x [P, in] -> [P, out], given its weights and
-    biases in order, computed feature-major ([features, P]) with a hand-written backward. The same function as the
-    module, faster on the CPU for one row per pixel: every product of the forward and the backward is then a single
-    well-shaped matrix product, and the backward keeps only the hidden activations (no graph node per layer)."""
+    biases in order: the same function as the module, with a hand-written backward, faster on the CPU for one row per
+    pixel. It runs feature-major ([features, rows], so every product is one well-shaped matrix product) on blocks of
+    ROWS_PER_BLOCK rows, keeps only the hidden activations for the backward, and sums the weights' gradients over
+    the blocks in order (deterministic)."""
 
     @staticmethod
     def forward(ctx, x: Tensor, *params: Tensor) -> Tensor:
-        h = x.t()
-        hidden = []
-        for i in range(0, len(params), 2):
-            h = torch.addmm(params[i + 1][:, None], params[i], h)
-            if i + 2 < len(params):
-                h = h.sigmoid_()
-                hidden.append(h)
+        out, hidden = [], []
+        for block in x.split(ROWS_PER_BLOCK):
+            h = block.t()
+            for i in range(0, len(params), 2):
+                h = torch.addmm(params[i + 1][:, None], params[i], h)
+                if i + 2 < len(params):
+                    h = h.sigmoid_()
+                    hidden.append(h)
+            out.append(h)
         ctx.save_for_backward(x, *params, *hidden)
         ctx.num_params = len(params)
-        return h.t()
+        return torch.cat(out, dim=1).t()
 
     @staticmethod
     @once_differentiable
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, ...]:
         x, *rest = ctx.saved_tensors
         params, hidden = rest[: ctx.num_params], rest[ctx.num_params :]
-        grads: list[Tensor | None] = [None] * (1 + len(params))
-        g = grad.t()  # dL/d(pre-activation) of the current layer, [features, P]
-        for layer in reversed(range(len(params) // 2)):
-            weight = params[2 * layer]
-            grads[1 + 2 * layer] = g @ (hidden[layer - 1].t() if layer else x)
-            grads[2 + 2 * layer] = g.sum(1)
-            if layer:
-                g = torch.ops.aten.sigmoid_backward(weight.t() @ g, hidden[layer - 1])
-            elif ctx.needs_input_grad[0]:
-                grads[0] = (weight.t() @ g).t()
+        num_layers = len(params) // 2
+        grads: list[Tensor | None] = [None, *(torch.zeros_like(p) for p in params)]
+        grad_x = []
+        for b, (block, grad_block) in enumerate(zip(x.split(ROWS_PER_BLOCK), grad.split(ROWS_PER_BLOCK),
+                                                    strict=True)):
+            acts = hidden[b * (num_layers - 1) : (b + 1) * (num_layers - 1)]
+            g = grad_block.t()  # dL/d(pre-activation) of the current layer, [features, rows]
+            for layer in reversed(range(num_layers)):
+                weight = params[2 * layer]
+                grads[1 + 2 * layer].addmm_(g, acts[layer - 1].t() if layer else block)
+                grads[2 + 2 * layer] += g.sum(1)
+                if layer:
+                    g = torch.ops.aten.sigmoid_backward(weight.t() @ g, acts[layer - 1])
+                elif ctx.needs_input_grad[0]:
+                    grad_x.append((weight.t() @ g).t())
+        if grad_x:
+            grads[0] = torch.cat(grad_x)
         return tuple(grads)
 
 

@@ -12,6 +12,7 @@ from test_densification import make
 from test_floaters import plane_scene
 
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
+from uw3dgs.fields import direction_medium
 from uw3dgs.fields.direction_medium import DirectionMedium, DirectionMediumConfig, _SigmoidMLP
 from uw3dgs.fields.gaussians import PARAM_NAMES
 from uw3dgs.methods.watersplatting import MediumResettingDensityControl, WaterSplattingModelConfig
@@ -104,10 +105,13 @@ def test_direction_medium_encoding_and_ranges():
     assert [(m.in_features, m.out_features) for m in layers] == [(16, 128), (128, 9)]
 
 
-@pytest.mark.parametrize("num_layers", [1, 2, 3])
-def test_direction_medium_mlp_equals_the_module_with_its_gradients(num_layers: int) -> None:
+@pytest.mark.parametrize("num_layers,rows_per_block", [(1, 2048), (2, 2048), (2, 8), (3, 16)])
+def test_direction_medium_mlp_equals_the_module_with_its_gradients(num_layers: int, rows_per_block: int,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """The feature-major MLP with its hand-written backward (what `DirectionMedium` runs) is its nn.Sequential:
-    outputs, weight and input gradients in float64, and gradcheck."""
+    outputs, weight and input gradients in float64, and gradcheck; in one block of rows and in several (the last
+    one shorter)."""
+    monkeypatch.setattr(direction_medium, "ROWS_PER_BLOCK", rows_per_block)
     torch.manual_seed(0)
     medium = DirectionMedium(DirectionMediumConfig(num_layers=num_layers, hidden_dim=8)).double()
     x = torch.randn(37, 16, dtype=torch.float64, requires_grad=True)
@@ -120,8 +124,8 @@ def test_direction_medium_mlp_equals_the_module_with_its_gradients(num_layers: i
     want_grads = torch.autograd.grad((want * weights).sum(), [x, *params])
     for g, w in zip(got_grads, want_grads, strict=True):
         torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12)
-    small = [t.detach()[:5].clone().requires_grad_(True) if i == 0 else t for i, t in enumerate([x, *params])]
-    assert torch.autograd.gradcheck(lambda *a: _SigmoidMLP.apply(*a), small)
+    small = [t.detach()[:10].clone().requires_grad_(True) if i == 0 else t for i, t in enumerate([x, *params])]
+    assert torch.autograd.gradcheck(lambda *a: _SigmoidMLP.apply(*a), small, fast_mode=True)
 
 
 def _model():
