@@ -86,6 +86,30 @@ class _SigmoidMLP(torch.autograd.Function):
         return tuple(grads)
 
 
+class _WaterHeads(torch.autograd.Function):
+    """The MLP's raw outputs [P, 9] -> [P, 9]: c_med = sigmoid(raw[:, :3]), then sigma_bs, sigma_attn =
+    softplus(raw[:, 3:] + density_bias), into one contiguous tensor (the compositor reads the three packed), with
+    PyTorch's own sigmoid and softplus and their backward."""
+
+    @staticmethod
+    def forward(ctx, raw: Tensor, density_bias: float) -> Tensor:
+        out = raw.new_empty(raw.shape)
+        torch.sigmoid(raw[:, :3], out=out[:, :3])
+        shifted = raw[:, 3:] + density_bias
+        out[:, 3:] = nn.functional.softplus(shifted)
+        ctx.save_for_backward(out, shifted)
+        return out
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        out, shifted = ctx.saved_tensors
+        grad_raw = grad.new_empty(grad.shape)
+        grad_raw[:, :3] = torch.ops.aten.sigmoid_backward(grad[:, :3], out[:, :3])
+        grad_raw[:, 3:] = torch.ops.aten.softplus_backward(grad[:, 3:], shifted, 1.0, 20.0)
+        return grad_raw, None
+
+
 class DirectionMedium(nn.Module):
     """c_med, sigma_bs, sigma_attn [..., 3] each from unit world-space directions [..., 3]; sigmas per unit of
     camera-space depth in the scene's (normalised) units. Hidden layers use sigmoid activations, as theirs."""
@@ -100,14 +124,18 @@ class DirectionMedium(nn.Module):
             in_dim = width
         self.mlp = nn.Sequential(*layers, nn.Linear(in_dim, 9))
 
-    def forward(self, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def packed(self, dirs: Tensor) -> Tensor:
+        """[..., 9]: c_med, sigma_bs, sigma_attn (3 each) for unit directions [..., 3]."""
         basis = sh_basis(self.config.sh_degree, dirs)
         params = [p for layer in self.mlp if isinstance(layer, nn.Linear) for p in (layer.weight, layer.bias)]
-        raw = _SigmoidMLP.apply(basis.reshape(-1, basis.shape[-1]), *params).reshape(*basis.shape[:-1], -1)
-        sigmas = nn.functional.softplus(raw[..., 3:] + self.config.density_bias)
-        return torch.sigmoid(raw[..., :3]), sigmas[..., :3], sigmas[..., 3:]
+        raw = _SigmoidMLP.apply(basis.reshape(-1, basis.shape[-1]), *params)
+        return _WaterHeads.apply(raw, self.config.density_bias).view(*basis.shape[:-1], 9)
+
+    def forward(self, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        values = self.packed(dirs)
+        return values[..., :3], values[..., 3:6], values[..., 6:]
 
     def pixel_medium(self, camera: Camera) -> PixelMedium:
         """The water of every pixel of `camera`, [H, W, 3] each, from its ray direction through the pixel centre."""
-        dirs = camera.ray_directions().to(self.mlp[-1].weight.dtype)
-        return PixelMedium(*self(dirs))
+        values = self.packed(camera.ray_directions().to(self.mlp[-1].weight.dtype))
+        return PixelMedium(values[..., :3], values[..., 3:6], values[..., 6:], packed_values=values)

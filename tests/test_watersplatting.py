@@ -128,6 +128,29 @@ def test_direction_medium_mlp_equals_the_module_with_its_gradients(num_layers: i
     assert torch.autograd.gradcheck(lambda *a: _SigmoidMLP.apply(*a), small, fast_mode=True)
 
 
+@pytest.mark.parametrize("density_bias", [0.0, 19.5])  # 19.5: raw values on both sides of softplus's threshold 20
+def test_direction_medium_outputs_and_gradients_are_the_modules(density_bias: float) -> None:
+    """c_med, sigma_bs, sigma_attn (packed into one tensor, as the compositor reads them) and their gradients equal
+    sigmoid / softplus of the nn.Sequential's outputs, in float64."""
+    torch.manual_seed(1)
+    medium = DirectionMedium(DirectionMediumConfig(hidden_dim=8, density_bias=density_bias)).double()
+    with torch.no_grad():
+        medium.mlp[-1].bias[3:] += torch.linspace(-1.0, 1.0, 6, dtype=torch.float64)
+    dirs = torch.nn.functional.normalize(torch.randn(6, 5, 3, dtype=torch.float64), dim=-1)
+    raw = medium.mlp(sh_basis(3, dirs))
+    sigmas = torch.nn.functional.softplus(raw[..., 3:] + density_bias)
+    want = (torch.sigmoid(raw[..., :3]), sigmas[..., :3], sigmas[..., 3:])
+    got = medium(dirs)
+    weights = [torch.randn(6, 5, 3, dtype=torch.float64) for _ in range(3)]
+    params = list(medium.parameters())
+    for g, w in zip(got, want, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12)
+    got_grads = torch.autograd.grad(sum((t * w).sum() for t, w in zip(got, weights, strict=True)), params)
+    want_grads = torch.autograd.grad(sum((t * w).sum() for t, w in zip(want, weights, strict=True)), params)
+    for g, w in zip(got_grads, want_grads, strict=True):
+        torch.testing.assert_close(g, w, rtol=1e-12, atol=1e-12)
+
+
 def _model():
     scene, *_ = plane_scene()
     config = WaterSplattingModelConfig(raster=RasterSettings(backend="torch"))  # the compiled one: the slow test

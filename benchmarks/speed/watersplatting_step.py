@@ -62,7 +62,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
         colors = model.gaussians.colors(camera.center)
         water = model.direction_medium.pixel_medium(camera)
     gaussians = [t.requires_grad_(True) for t in (means, quats, scales, opacities, colors)]
-    water = PixelMedium(*(t.requires_grad_(True) for t in (water.color, water.sigma_bs, water.sigma_attn)))
+    water = PixelMedium(*(t.clone().requires_grad_(True) for t in (water.color, water.sigma_bs, water.sigma_attn)))
 
     def composite_3dgs() -> None:
         rasterize(*gaussians, camera, settings).render.sum().backward()

@@ -20,6 +20,9 @@ class PixelMedium:
     color: Tensor
     sigma_bs: Tensor
     sigma_attn: Tensor
+    packed_values: Tensor | None = None
+    """The three as one [H, W, 9] tensor, when whoever made them has it (their views into it): `packed` returns it
+    instead of a copy, and gradients reach it without being split and gathered again."""
 
     def check(self, width: int, height: int) -> None:
         """ValueError unless all three are [height, width, 3]."""
@@ -30,6 +33,8 @@ class PixelMedium:
 
     def packed(self) -> Tensor:
         """[H, W, 9]: color, sigma_bs, sigma_attn along the last dim."""
+        if self.packed_values is not None:
+            return self.packed_values
         return torch.cat([self.color, self.sigma_bs, self.sigma_attn], dim=-1)
 
 
