@@ -11,7 +11,8 @@ Trainer does: render (for watersplatting the medium MLP and the medium composito
 `--clock cpu` times this process's CPU time instead of wall time (on a machine shared with other work, the wall
 time of a one-thread step mostly measures the others). `--parts` also times, on the watersplatting model's
 Gaussians and first training view, what a watersplatting step adds to a 3dgs one: the medium compositor against the
-3DGS compositor (forward, and forward + backward of a sum of their images) and the medium MLP (forward + backward).
+3DGS compositor (forward, and forward + backward of a sum of their images) and the medium MLP (forward + backward,
+as the model runs it and as its nn.Sequential with autograd).
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
     from uw3dgs.render import rasterize
     from uw3dgs.render.medium_rasterize import rasterize_medium
     from uw3dgs.render.medium_types import PixelMedium
+    from uw3dgs.render.sh import sh_basis
 
     camera, settings = model.train_cameras[0], model.config.raster
     with torch.no_grad():
@@ -79,13 +81,21 @@ def parts(model) -> dict[str, Callable[[], None]]:
         with torch.no_grad():
             rasterize_medium(*gaussians, water, camera, settings)
 
+    weights = torch.rand(camera.height, camera.width, 9, generator=torch.Generator().manual_seed(0))
+
     def medium_mlp() -> None:
-        medium = model.direction_medium.pixel_medium(camera)
-        (medium.color.sum() + medium.sigma_bs.sum() + medium.sigma_attn.sum()).backward()
+        (model.direction_medium.pixel_medium(camera).packed() * weights).sum().backward()
+
+    def medium_mlp_autograd() -> None:  # the same function as its nn.Sequential, activations and packing by autograd
+        medium = model.direction_medium
+        raw = medium.mlp(sh_basis(medium.config.sh_degree, camera.ray_directions().to(weights)))
+        sigmas = torch.nn.functional.softplus(raw[..., 3:] + medium.config.density_bias)
+        (torch.cat([torch.sigmoid(raw[..., :3]), sigmas], dim=-1) * weights).sum().backward()
 
     return {"3DGS compositor forward": forward_3dgs, "medium compositor forward": forward_medium,
             "3DGS compositor forward + backward": composite_3dgs,
-            "medium compositor forward + backward": composite_medium, "medium MLP forward + backward": medium_mlp}
+            "medium compositor forward + backward": composite_medium, "medium MLP forward + backward": medium_mlp,
+            "medium MLP forward + backward, nn.Sequential and autograd": medium_mlp_autograd}
 
 
 def main() -> None:
