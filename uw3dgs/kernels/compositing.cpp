@@ -14,43 +14,21 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
                                              double alpha_max, double t_min, bool for_backward,
                                              std::vector<torch::Tensor> bins_in) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &depths, &radii}) check_cpu(*p, "input");
-  const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
   TORCH_CHECK(F >= 1 && F <= 64, "the CPU rasterizer composites 1 to 64 channels (depth included), got ", F);
   TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
-  auto opts = means2d.options();
-  auto render = torch::empty({height, width, F - 1}, opts);
-  auto depth = torch::empty({height, width}, opts);
-  auto alpha = torch::empty({height, width}, opts);
-  auto final_t = torch::empty({height, width}, opts);
-  auto weight_sum = torch::empty({n}, opts);
-  auto pixel_count = torch::empty({n}, opts.dtype(torch::kInt32));
-  Bins bins;
-  Trace trace;
-  torch::Tensor recs;
+  ForwardImages images;
+  std::vector<torch::Tensor> state;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
-    recs = gauss_records<scalar_t>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
-    bins = tile_lists_for<scalar_t>(means2d, depths, radii, records_of<scalar_t>(recs), width, height, tile_size,
-                                    bins_in);
-    const int64_t pairs = bins.sorted_gauss.size(0);
-    auto slot_weight = torch::empty({pairs}, opts);
-    auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
     with_channels(F, [&](auto nf) {
-      composite_forward_impl<scalar_t, decltype(nf)::value>(bins, records_of<scalar_t>(recs), feats, width, height,
-                                                            alpha_min, alpha_max, t_min, render, depth, alpha,
-                                                            final_t, slot_weight, slot_count,
-                                                            for_backward ? &trace : nullptr);
+      composite_forward_all<scalar_t, decltype(nf)::value>(
+          means2d, conics, opacities, feats, depths, radii, width, height, tile_size, alpha_min, alpha_max, t_min,
+          bins_in, for_backward, images, state, [](const Bins&) { return NoExtra(); });
     });
-    reduce_slots<scalar_t>(bins.gauss_starts, slot_weight, weight_sum);
-    reduce_slots<int32_t>(bins.gauss_starts, slot_count, pixel_count);
   });
-  std::vector<torch::Tensor> out = {render, depth, alpha, weight_sum, pixel_count};
-  if (for_backward) {
-    for (const auto& t : {final_t, bins.tile_starts, bins.sorted_gauss, bins.sorted_slot, bins.gauss_starts, recs,
-                          trace.pair_codes, trace.tile_codes})
-      out.push_back(t);
-    for (const auto& t : trace.codes) out.push_back(t);
-  }
+  std::vector<torch::Tensor> out = {images.render, images.depth, images.alpha, images.weight_sum,
+                                    images.pixel_count};
+  out.insert(out.end(), state.begin(), state.end());
   return out;
 }
 
@@ -63,16 +41,12 @@ std::vector<torch::Tensor> composite_backward(torch::Tensor means2d, torch::Tens
                                               torch::Tensor grad_alpha, bool all_inputs) {
   for (auto* p : {&means2d, &conics, &opacities, &feats, &grad_render, &grad_depth, &grad_alpha})
     check_cpu(*p, "input");
-  TORCH_CHECK(state.size() >= 8, "composite_backward: incomplete forward state");
   const int64_t n = means2d.size(0);
   const int64_t F = feats.size(1);
-  const torch::Tensor& final_t = state[0];
-  const Bins bins = bins_from(state.data() + 1, width, height, tile_size);
-  const torch::Tensor& recs = state[5];
-  Trace trace;
-  trace.pair_codes = state[6];
-  trace.tile_codes = state[7];
-  trace.codes.assign(state.begin() + 8, state.end());
+  const ForwardState saved = state_of(state, width, height, tile_size, "composite_backward");
+  const torch::Tensor &final_t = saved.final_t, &recs = saved.recs;
+  const Bins& bins = saved.bins;
+  const Trace& trace = saved.trace;
   auto opts = means2d.options();
   const int64_t row = all_inputs ? 6 + F : 1;
   auto grads = all_inputs ? torch::empty({n, row}, opts) : torch::empty({n}, opts);

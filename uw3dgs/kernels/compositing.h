@@ -14,6 +14,35 @@ struct Trace {
   std::vector<torch::Tensor> codes;       // per thread buffer, int32
 };
 
+// What a compositing forward hands its backward (composite_forward's and its siblings'), as the tensors after its
+// images: final_t, the tile lists (4), the Gaussian records, pair_codes, tile_codes, then the code buffers.
+struct ForwardState {
+  torch::Tensor final_t, recs;
+  Bins bins;
+  Trace trace;
+};
+
+inline void push_state(std::vector<torch::Tensor>& out, const torch::Tensor& final_t, const Bins& bins,
+                       const torch::Tensor& recs, const Trace& trace) {
+  for (const auto& t : {final_t, bins.tile_starts, bins.sorted_gauss, bins.sorted_slot, bins.gauss_starts, recs,
+                        trace.pair_codes, trace.tile_codes})
+    out.push_back(t);
+  for (const auto& t : trace.codes) out.push_back(t);
+}
+
+inline ForwardState state_of(const std::vector<torch::Tensor>& state, int64_t width, int64_t height,
+                             int64_t tile_size, const char* backward) {
+  TORCH_CHECK(state.size() >= 8, backward, ": incomplete forward state");
+  ForwardState s;
+  s.final_t = state[0];
+  s.bins = bins_from(state.data() + 1, width, height, tile_size);
+  s.recs = state[5];
+  s.trace.pair_codes = state[6];
+  s.trace.tile_codes = state[7];
+  s.trace.codes.assign(state.begin() + 8, state.end());
+  return s;
+}
+
 // Pixel box of a Gaussian within a tile, as tile-local rows and chunk columns; false when they miss.
 template <typename T>
 inline bool tile_box(const GaussRec<T>& g, int64_t x0, int64_t y0, int64_t w, int64_t h, int64_t& r_lo,
@@ -517,5 +546,44 @@ void with_channels(int64_t F, Fn&& fn) {
   else if (F == 6) fn(std::integral_constant<int, 6>());
   else if (F == 2) fn(std::integral_constant<int, 2>());
   else fn(std::integral_constant<int, 0>());
+}
+
+// A compositing forward's images: render [H, W, F - 1] (the features but the last), depth [H, W] (the last),
+// alpha and final transmittance [H, W]; per Gaussian its weight sum [N] and blended pixel count [N] int32.
+struct ForwardImages {
+  torch::Tensor render, depth, alpha, final_t, weight_sum, pixel_count;
+};
+
+// composite_forward's work, shared with its siblings: the Gaussian records, the tile lists (`bins_in`'s when given,
+// tile_lists_for), the compositing of feats [N, F] (NF: F as compiled, 0: any) with the hook make_extra(bins)
+// returns (NoExtra: none), each Gaussian's weight sum and pixel count. The images into `images`; the backward's
+// state appended to `state` when `for_backward` (push_state).
+template <typename T, int NF, typename MakeExtra>
+void composite_forward_all(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opacities,
+                           const torch::Tensor& feats, const torch::Tensor& depths, const torch::Tensor& radii,
+                           int64_t width, int64_t height, int64_t tile_size, double alpha_min, double alpha_max,
+                           double t_min, const std::vector<torch::Tensor>& bins_in, bool for_backward,
+                           ForwardImages& images, std::vector<torch::Tensor>& state, MakeExtra&& make_extra) {
+  const int64_t n = means2d.size(0);
+  const auto opts = means2d.options();
+  images.render = torch::empty({height, width, feats.size(1) - 1}, opts);
+  images.depth = torch::empty({height, width}, opts);
+  images.alpha = torch::empty({height, width}, opts);
+  images.final_t = torch::empty({height, width}, opts);
+  images.weight_sum = torch::empty({n}, opts);
+  images.pixel_count = torch::empty({n}, opts.dtype(torch::kInt32));
+  const torch::Tensor recs =
+      gauss_records<T>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
+  const Bins bins = tile_lists_for<T>(means2d, depths, radii, records_of<T>(recs), width, height, tile_size, bins_in);
+  const int64_t pairs = bins.sorted_gauss.size(0);
+  auto slot_weight = torch::empty({pairs}, opts);
+  auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
+  Trace trace;
+  composite_forward_impl<T, NF>(bins, records_of<T>(recs), feats, width, height, alpha_min, alpha_max, t_min,
+                                images.render, images.depth, images.alpha, images.final_t, slot_weight, slot_count,
+                                for_backward ? &trace : nullptr, make_extra(bins));
+  reduce_slots<T>(bins.gauss_starts, slot_weight, images.weight_sum);
+  reduce_slots<int32_t>(bins.gauss_starts, slot_count, images.pixel_count);
+  if (for_backward) push_state(state, images.final_t, bins, recs, trace);
 }
 }  // namespace uw3dgs_kernels

@@ -18,8 +18,8 @@ constexpr int kMediumValues = 9;  // per pixel: c_med, sigma_bs, sigma_attn (3 e
 
 // exp(x) of the water factors, x <= 0 floored at kExpFloor (the factor is then below 2e-35: nothing to the sums).
 // Floats under AVX-512: exp_f32.h's reduction and polynomial with fused multiply-adds, the rounding by roundscale and
-// the scaling by scalef, 13 instructions instead of vexp's 22, within an ulp of it (these factors only enter sums,
-// where alpha's exp also decides which pixels blend: that one stays vexp, the same bits forward and backward).
+// the scaling by scalef, about 14 instructions instead of vexp's 22, within an ulp of it. These factors only enter
+// sums; alpha's exp also decides which pixels blend, so it stays vexp (the same bits in forward and backward).
 inline Simd<float>::V water_exp(Simd<float>::V x) {
 #ifdef __AVX512F__
   const auto c = [](float v) { return _mm512_set1_ps(v); };
@@ -241,40 +241,20 @@ std::vector<torch::Tensor> medium_composite_forward(torch::Tensor means2d, torch
   for (auto* p : {&means2d, &conics, &opacities, &feats, &depths, &radii, &medium}) check_cpu(*p, "input");
   check_medium(medium, feats, width, height);
   TORCH_CHECK(tile_size >= 1 && tile_size <= kMaxTile, "tile_size must be in [1, ", kMaxTile, "]");
-  const int64_t n = means2d.size(0);
-  auto opts = means2d.options();
-  auto restored = torch::empty({height, width, kColor}, opts);
-  auto object = torch::empty({height, width, kColor}, opts);
-  auto water = torch::empty({height, width, kColor}, opts);
-  auto depth = torch::empty({height, width}, opts);
-  auto alpha = torch::empty({height, width}, opts);
-  auto final_t = torch::empty({height, width}, opts);
-  auto weight_sum = torch::empty({n}, opts);
-  auto pixel_count = torch::empty({n}, opts.dtype(torch::kInt32));
-  Bins bins;
-  Trace trace;
-  torch::Tensor recs;
+  auto object = torch::empty({height, width, kColor}, means2d.options());
+  auto water = torch::empty({height, width, kColor}, means2d.options());
+  ForwardImages images;
+  std::vector<torch::Tensor> state;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "medium_composite_forward", [&] {
     using T = scalar_t;
-    recs = gauss_records<T>(means2d, conics, opacities, std::log(alpha_min) - kLogMargin, width, height);
-    bins = tile_lists_for<T>(means2d, depths, radii, records_of<T>(recs), width, height, tile_size, {});
-    const int64_t pairs = bins.sorted_gauss.size(0);
-    auto slot_weight = torch::empty({pairs}, opts);
-    auto slot_count = torch::empty({pairs}, opts.dtype(torch::kInt32));
-    composite_forward_impl<T, kFeats>(bins, records_of<T>(recs), feats, width, height, alpha_min, alpha_max, t_min,
-                                      restored, depth, alpha, final_t, slot_weight, slot_count,
-                                      for_backward ? &trace : nullptr,
-                                      WaterForward<T>(medium, feats, bins, width, object, water));
-    reduce_slots<T>(bins.gauss_starts, slot_weight, weight_sum);
-    reduce_slots<int32_t>(bins.gauss_starts, slot_count, pixel_count);
+    composite_forward_all<T, kFeats>(
+        means2d, conics, opacities, feats, depths, radii, width, height, tile_size, alpha_min, alpha_max, t_min, {},
+        for_backward, images, state,
+        [&](const Bins& bins) { return WaterForward<T>(medium, feats, bins, width, object, water); });
   });
-  std::vector<torch::Tensor> out = {restored, depth, alpha, object, water, weight_sum, pixel_count};
-  if (for_backward) {
-    for (const auto& t : {final_t, bins.tile_starts, bins.sorted_gauss, bins.sorted_slot, bins.gauss_starts, recs,
-                          trace.pair_codes, trace.tile_codes})
-      out.push_back(t);
-    for (const auto& t : trace.codes) out.push_back(t);
-  }
+  std::vector<torch::Tensor> out = {images.render, images.depth, images.alpha, object, water, images.weight_sum,
+                                    images.pixel_count};
+  out.insert(out.end(), state.begin(), state.end());
   return out;
 }
 
@@ -292,27 +272,17 @@ std::vector<torch::Tensor> medium_composite_backward(torch::Tensor means2d, torc
                   &g_water})
     check_cpu(*p, "input");
   check_medium(medium, feats, width, height);
-  TORCH_CHECK(state.size() >= 8, "medium_composite_backward: incomplete forward state");
-  const int64_t n = means2d.size(0);
-  const torch::Tensor& final_t = state[0];
-  const Bins bins = bins_from(state.data() + 1, width, height, tile_size);
-  const torch::Tensor& recs = state[5];
-  Trace trace;
-  trace.pair_codes = state[6];
-  trace.tile_codes = state[7];
-  trace.codes.assign(state.begin() + 8, state.end());
-  auto opts = means2d.options();
-  const int64_t row = 6 + kFeats + WaterBackward<float>::kRow;
-  auto grads = torch::empty({n, row}, opts);
-  auto g_medium = torch::empty({height, width, kMediumValues}, opts);
+  const ForwardState s = state_of(state, width, height, tile_size, "medium_composite_backward");
+  const int64_t row = 6 + kFeats + WaterBackward<float>::kRow;  // the slot rows: TileBackward's, then the hook's
+  auto grads = torch::empty({means2d.size(0), row}, means2d.options());
+  auto g_medium = torch::empty({height, width, kMediumValues}, means2d.options());
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "medium_composite_backward", [&] {
     using T = scalar_t;
-    auto slot_grad = torch::empty({bins.sorted_gauss.size(0), row}, opts);
-    composite_backward_impl<T, kFeats, true>(bins, trace, records_of<T>(recs), feats, width, height, alpha_max,
-                                             final_t, g_restored, g_depth, g_alpha, slot_grad,
-                                             WaterBackward<T>(medium, feats, bins, width, g_object, g_water,
-                                                              g_medium));
-    reduce_slots<T>(bins.gauss_starts, slot_grad, grads);
+    auto slot_grad = torch::empty({s.bins.sorted_gauss.size(0), row}, means2d.options());
+    composite_backward_impl<T, kFeats, true>(
+        s.bins, s.trace, records_of<T>(s.recs), feats, width, height, alpha_max, s.final_t, g_restored, g_depth,
+        g_alpha, slot_grad, WaterBackward<T>(medium, feats, s.bins, width, g_object, g_water, g_medium));
+    reduce_slots<T>(s.bins.gauss_starts, slot_grad, grads);
   });
   using torch::indexing::Slice;
   return {grads.index({Slice(), Slice(0, 2)}), grads.index({Slice(), Slice(2, 5)}), grads.index({Slice(), 5}),
