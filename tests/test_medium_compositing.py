@@ -290,6 +290,31 @@ def test_compiled_matches_reference(seed: int, n: int, settings: RasterSettings,
         assert torch.equal(getattr(plain, name), getattr(out, name).detach()), name
 
 
+def test_compiled_is_bitwise_the_same_on_any_thread_count() -> None:
+    """Outputs, gradients (the medium's too) and absolute gradients, run again and on one and two threads: enough
+    pairs for the parallel paths (kParallelMin = 4,096 in common.h)."""
+    _compiled()
+    scene, medium = _scene_and_medium(8, 6000, 96, 80)
+    settings = RasterSettings(backend="cpu")
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for n_threads in (threads, threads, 1, max(2, threads)):
+            torch.set_num_threads(n_threads)
+            out, grads = _render_with_grads(rasterize_medium_cpu, scene, medium, torch.float32, settings)
+            runs.append([out.object, out.medium, out.render, out.alpha, out.depth, out.weight_sum, out.pixel_count,
+                         *grads])
+    finally:
+        torch.set_num_threads(threads)
+    cam = scene.camera
+    proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, cam.viewmat, cam.K, cam.width,
+                             cam.height, settings)
+    assert int(bin_gaussians(proj, cam.width, cam.height, settings.tile_size).tile_counts.sum()) > 4 * 4096
+    for other in runs[1:]:
+        for a, b in zip(runs[0], other, strict=True):
+            assert torch.equal(a, b)
+
+
 def test_compiled_cases_reach_their_paths() -> None:
     """The cases above do what their names say: tiles without Gaussians, tiles whose every pixel terminates."""
     scene, medium = _scene_and_medium(3, 4, 37, 23)
