@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from uw3dgs.config import InstantiateConfig, Target, target
 from uw3dgs.fields.medium_identifiability import IdentifiabilityConfig
+from uw3dgs.fields.medium_multiview import MultiviewConfig
 from uw3dgs.kernels.policy import Kernels, use_compiled
 from uw3dgs.kernels.vm_field import vm_read
 from uw3dgs.medium.field import Medium
@@ -54,13 +55,16 @@ class MediumFieldConfig(InstantiateConfig):
     """Initial veiling light B_inf (RGB)."""
     learn_beta: bool = True
     """False fixes beta_D = beta_B = beta_prior (the no-L_beta ablation); B_inf is still learned."""
-    init: Literal["prior", "estimate", "truth"] = "estimate"
+    init: Literal["prior", "estimate", "multiview", "truth"] = "estimate"
     """Starting medium: 'estimate' (default) = a homogeneous medium fitted to the initial points' colours
     across the training views, the Gaussians' colours de-hazed to match, and L_beta pulling toward it
     (fields/medium_estimate.py; betas stay at beta_prior when learn_beta is False); 'prior' = beta_prior
     and b_inf_init everywhere, colours as they are, L_beta pulling toward beta_prior (the paper); 'truth' =
     as 'estimate' with the scene's true medium (gt/medium.json, synthetic scenes only): an oracle for analysis,
-    not a method (zero --optimizers.medium-beta.lr and --optimizers.medium-b-inf.lr keep it there)."""
+    not a method (zero --optimizers.medium-beta.lr and --optimizers.medium-b-inf.lr keep it there); 'multiview' =
+    as 'estimate', each parameter then taken from the evidence that pins it: the single-image estimate or the fit
+    of how each point's colour changes with its range across the views (fields/medium_evidence.py,
+    docs/medium-estimate.md)."""
     dark_bins: int = 10
     """'estimate' reads beta_B off the darkest observations of the points in this many range bins (Sea-thru)."""
     dark_share: float = 0.01
@@ -98,6 +102,8 @@ class MediumFieldConfig(InstantiateConfig):
     of the scene), prints it and keeps it in the run folder (`notes/medium_report.json`) and in uw-eval's JSON."""
     identifiability: IdentifiabilityConfig = field(default_factory=IdentifiabilityConfig)
     """The report's thresholds."""
+    multiview: MultiviewConfig = field(default_factory=MultiviewConfig)
+    """init 'multiview': the multi-view fit's knobs (fields/medium_multiview.py)."""
     no_water_level: float = 0.25
     """'estimate' judges whether there is water at all (uw3dgs/medium/water_verdict.py): little or no water when the
     optical depths beta_D*z and beta_B*z at the far end of the ranges stay below this in every channel (the water

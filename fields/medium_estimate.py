@@ -244,11 +244,23 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
     fit = None if known is not None else fit_medium(*observations, b_inf, dark_bins, dark_share, residual=residual,
                                                     far_quantile=far_quantile)
     medium = tuple(x.float() for x in known) if fit is None else fit.medium
+    colors = dehazed_colors(points, point_colors, cameras, dataset_scale, medium, (idx, obs, ranges), sfm_cameras)
+    return MediumEstimate(*medium, colors, len(fitted), fit, observations, points[fitted])
+
+
+def dehazed_colors(points: Tensor, point_colors: Tensor, cameras: list[Camera], dataset_scale: float,
+                   medium: tuple[Tensor, Tensor, Tensor], observed: tuple[Tensor, Tensor, Tensor],
+                   sfm_cameras: list[Camera] | None = None) -> Tensor:
+    """[P, 3] the clean colours of `points` [P, 3] through the homogeneous `medium` (beta_D, beta_B, B_inf [3], per
+    dataset unit): from their `observed` = `observe_points(points, cameras, images)`, or, for a point no view sees,
+    its SfM colour `point_colors` [P, 3] at the range it was seen from (`color_ranges` over `sfm_cameras`, the
+    training `cameras` when None); see `estimate_medium`."""
+    idx, obs, ranges = observed
     seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
-    observed, local = torch.unique(idx, return_inverse=True)
-    colors[observed] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
-    return MediumEstimate(*medium, colors, len(fitted), fit, observations, points[fitted])
+    observed_ids, local = torch.unique(idx, return_inverse=True)
+    colors[observed_ids] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
+    return colors
 
 
 def estimate_from_views(config: MediumFieldConfig, scene: SceneData, train_indices: list[int],

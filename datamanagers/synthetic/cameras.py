@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
@@ -29,7 +31,23 @@ def _look_rotation(heading: float, tilt: float, roll: float) -> np.ndarray:
 
 
 def _path(cfg: SyntheticSceneConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Nominal camera centres [N, 3] and headings [N] of the chosen path, centred on the origin."""
+    """Nominal camera centres [N, 3] and headings [N] of the chosen path, centred on the origin; with
+    `pass_altitudes`, one pass per altitude, each moved back along its headings to look at the same seabed."""
+    if not cfg.pass_altitudes:
+        return _one_pass(cfg)
+    centres, headings = [], []
+    for altitude, views in zip(cfg.pass_altitudes, np.array_split(np.arange(cfg.num_views), len(cfg.pass_altitudes)),
+                               strict=True):
+        c, h = _one_pass(replace(cfg, num_views=len(views), altitude=altitude, pass_altitudes=()))
+        back = (altitude - cfg.altitude) * np.tan(np.radians(cfg.tilt_deg))
+        c[:, :2] -= back * np.stack([np.cos(h), np.sin(h)], axis=1)
+        centres.append(c)
+        headings.append(h)
+    return np.concatenate(centres), np.concatenate(headings)
+
+
+def _one_pass(cfg: SyntheticSceneConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Nominal camera centres [N, 3] and headings [N] of the chosen path at `altitude`, centred on the origin."""
     n, half = cfg.num_views, 0.5 * cfg.path_length
     if cfg.path == "forward":
         s = np.linspace(-half, half, n)

@@ -15,7 +15,7 @@ GENERATOR_VERSION = 2
 
 RGB = tuple[float, float, float]
 WaterTypeName = Literal["I", "II", "III", "1C", "3C", "5C", "7C", "9C"]
-MediumProfile = Literal["homogeneous", "turbid-bottom", "plume"]
+MediumProfile = Literal["homogeneous", "turbid-bottom", "plume", "gradient"]
 
 RAY_SAMPLES = 128
 """Samples along each ray (midpoint rule) for the ray mean of a spatially varying medium."""
@@ -46,6 +46,12 @@ class SyntheticSceneConfig(CheckedConfig):
     (as in forward-looking dives), which is where the veiling light B_inf shows on its own."""
     path_length: float = 6.0
     """Length of the forward pass, or of each lawnmower line, in metres."""
+    pass_altitudes: tuple[float, ...] = ()
+    """A survey that passes over the same seabed at several altitudes (metres), e.g. 3 6: the views are split evenly
+    among the passes (in this order), each pass the chosen path at its altitude, moved back along its heading by
+    (altitude - `altitude`) tan(tilt_deg) so that its optical axes meet the seabed where the reference pass's do: every
+    seabed point is then seen at ranges about as different as the altitudes (what pins the medium from the points'
+    colours, fields/medium_multiview.py). Empty: one pass at `altitude`."""
     lawnmower_lines: int = 3
     """Number of parallel lines of the lawnmower path (alternating direction)."""
     line_spacing: float = 1.5
@@ -111,7 +117,8 @@ class SyntheticSceneConfig(CheckedConfig):
     """How beta_D and beta_B vary in space: both are the reference medium (above, or the water type's) times a
     factor f(x) >= 1. 'homogeneous': f = 1. 'turbid-bottom': f = 1 + gain exp(-max(z, 0) / turbid_height), z the
     height above the mean seabed (turbidity grows towards the seabed). 'plume': f = 1 + gain exp(-|x -
-    plume_center|^2 / (2 plume_radius^2)), a Gaussian cloud. A pixel sees the mean of beta along its ray from the
+    plume_center|^2 / (2 plume_radius^2)), a Gaussian cloud. 'gradient': a smooth horizontal step (gradient_*).
+    A pixel sees the mean of beta along its ray from the
     camera to the seabed (the method's model); B_inf stays one colour."""
     medium_profile_gain: float = 3.0
     """gain of medium_profile: beta at the seabed (turbid-bottom) or the plume's centre is (1 + gain) x reference."""
@@ -121,6 +128,14 @@ class SyntheticSceneConfig(CheckedConfig):
     """plume: standard deviation of the Gaussian cloud, in metres."""
     plume_center: tuple[float, float, float] = (0.0, 4.0, 1.0)
     """plume: centre (x, y, z) in metres (the default is where the forward path's cameras look)."""
+    gradient_azimuth_deg: float = 0.0
+    """gradient: the horizontal direction along which the water thickens, counter-clockwise from +x, in degrees."""
+    gradient_length: float = 2.0
+    """gradient: f = 1 + gain (1 + tanh(s / length)) / 2, s the horizontal distance (metres) past `gradient_center`
+    along the direction: a smooth step of about 2 length metres from clear (f = 1) to turbid (1 + gain)."""
+    gradient_center: tuple[float, float] = (0.0, 4.0)
+    """gradient: the horizontal point (x, y) in metres where f is halfway (the default is where the forward path's
+    cameras look)."""
     num_points: int = 4000
     """Number of SfM-like initial points written to points3D.bin (outliers included)."""
     point_noise: float = 0.01
@@ -187,8 +202,15 @@ class SyntheticSceneConfig(CheckedConfig):
                 if tuple(getattr(self, name)) != defaults[name]:
                     raise OptionError(name, f"cannot be set together with water_type (the water type "
                                             f"{self.water_type} sets beta_D, beta_B and B_inf)")
-        if self.medium_profile not in ("homogeneous", "turbid-bottom", "plume"):
-            raise OptionError("medium_profile", "must be one of homogeneous, turbid-bottom, plume, "
+        check_number(self, "pass_altitudes", gt=0, each=True)
+        if len(self.pass_altitudes) > self.num_views:
+            raise OptionError("pass_altitudes", f"has {len(self.pass_altitudes)} passes for {self.num_views} views: "
+                                                "give at most one pass per view")
+        check_number(self, "gradient_azimuth_deg")
+        check_number(self, "gradient_length", gt=0)
+        check_number(self, "gradient_center", each=True)
+        if self.medium_profile not in ("homogeneous", "turbid-bottom", "plume", "gradient"):
+            raise OptionError("medium_profile", "must be one of homogeneous, turbid-bottom, plume, gradient, "
                                                 f"got {self.medium_profile!r}")
         check_number(self, "medium_profile_gain", ge=0)
         for name in ("turbid_height", "plume_radius"):
@@ -212,6 +234,10 @@ def config_record(config: SyntheticSceneConfig) -> dict:
         unused.append("turbid_height")
     if config.medium_profile != "plume":
         unused += ["plume_radius", "plume_center"]
+    if config.medium_profile != "gradient":
+        unused += ["gradient_azimuth_deg", "gradient_length", "gradient_center"]
+    if not config.pass_altitudes:
+        unused.append("pass_altitudes")
     if config.medium_profile == "homogeneous":
         unused += ["medium_profile", "medium_profile_gain"]
     for name in unused:

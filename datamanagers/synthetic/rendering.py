@@ -69,6 +69,11 @@ def profile_factor(cfg: SyntheticSceneConfig, points: np.ndarray) -> np.ndarray:
     gain = cfg.medium_profile_gain
     if cfg.medium_profile == "turbid-bottom":
         return 1.0 + gain * np.exp(-np.maximum(points[..., 2], 0.0) / cfg.turbid_height)
+    if cfg.medium_profile == "gradient":
+        angle = np.radians(cfg.gradient_azimuth_deg)
+        along = (points[..., 0] - cfg.gradient_center[0]) * np.cos(angle) + \
+            (points[..., 1] - cfg.gradient_center[1]) * np.sin(angle)
+        return 1.0 + gain * 0.5 * (1.0 + np.tanh(along / cfg.gradient_length))
     if cfg.medium_profile == "plume":
         d2 = np.sum((points - np.asarray(cfg.plume_center, dtype=float)) ** 2, axis=-1)
         return 1.0 + gain * np.exp(-d2 / (2.0 * cfg.plume_radius ** 2))

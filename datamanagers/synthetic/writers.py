@@ -91,13 +91,18 @@ def write_medium(path: Path, cfg: SyntheticSceneConfig, medium: dict[str, np.nda
                                  "water_light": cfg.water_light, "sources": WATER_TYPE_SOURCES}
     if cfg.medium_profile != "homogeneous":
         formula = {"turbid-bottom": "1 + gain * exp(-max(z, 0) / height), z = height above the mean seabed",
-                   "plume": "1 + gain * exp(-|x - center|^2 / (2 radius^2))"}[cfg.medium_profile]
+                   "plume": "1 + gain * exp(-|x - center|^2 / (2 radius^2))",
+                   "gradient": "1 + gain * (1 + tanh(s / length)) / 2, s = (x, y) - center along (cos a, sin a), "
+                               "a = azimuth"}[cfg.medium_profile]
         profile = {"kind": cfg.medium_profile, "gain": cfg.medium_profile_gain, "factor": formula,
                    "meaning": "beta_D(x) = beta_D * factor(x) and beta_B(x) = beta_B * factor(x), with beta_D and "
                               "beta_B above the reference values (factor 1); B_inf is one colour. A pixel sees the "
                               "mean of beta along its ray from the camera to the seabed."}
         if cfg.medium_profile == "turbid-bottom":
             profile["height"] = cfg.turbid_height
+        elif cfg.medium_profile == "gradient":
+            profile |= {"azimuth_deg": cfg.gradient_azimuth_deg, "length": cfg.gradient_length,
+                        "center": list(cfg.gradient_center)}
         else:
             profile |= {"radius": cfg.plume_radius, "center": list(cfg.plume_center)}
         content["medium_profile"] = profile

@@ -22,8 +22,10 @@ from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig
-from uw3dgs.fields.medium_estimate import estimate_from_views
+from uw3dgs.fields.medium_estimate import MediumEstimate, dehazed_colors, estimate_from_views, observe_points
+from uw3dgs.fields.medium_evidence import EvidenceReport, combine_by_evidence
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
+from uw3dgs.fields.medium_multiview import observe_and_estimate
 from uw3dgs.medium.formation import Water, form_underwater_image, form_with_water
 from uw3dgs.medium.water_verdict import WaterVerdict, far_range, water_verdict
 from uw3dgs.methods.gaussian_splatting import (
@@ -100,6 +102,8 @@ class UW3DGSModel(GaussianSplattingModel):
         self.medium: MediumField | None = None
         self.medium_report: IdentifiabilityReport | None = None
         """The report on the starting estimate (`initialize_from_data`; None: not made, or a loaded run)."""
+        self.medium_evidence: EvidenceReport | None = None
+        """init 'multiview': where each parameter of the start came from (`initialize_from_data`)."""
         self.water: WaterVerdict | None = None
         """The verdict on the starting estimate: is there water at all (`initialize_from_data`; None: not made)."""
         self.register_buffer("water_free", torch.tensor(False))
@@ -143,6 +147,8 @@ class UW3DGSModel(GaussianSplattingModel):
                 for line in [*self.medium_report.lines(), weak_medium_action(self.medium_report)]:
                     if line:
                         info(f"medium report: {line}")
+            if mc.init == "multiview":
+                estimate = self._combine_by_evidence(estimate, water, scene, train_indices)
         learned = mc.learn_beta
         self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
                                     estimate.b_inf)
@@ -153,6 +159,24 @@ class UW3DGSModel(GaussianSplattingModel):
             with torch.no_grad():
                 self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
+    def _combine_by_evidence(self, estimate: MediumEstimate, water: Tensor | None, scene: SceneData,
+                             train_indices: list[int]) -> MediumEstimate:
+        """init 'multiview': the single-image `estimate` with each parameter taken from the evidence that pins it
+        (fields/medium_evidence.py), its points' colours de-hazed with that medium; the verdicts logged and kept."""
+        mc = self.config.medium
+        cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
+        self.medium_evidence = combine_by_evidence(
+            estimate, self.medium_report, water,
+            lambda b_inf: observe_and_estimate(scene.points, cameras, images, self.dataset_scale, mc.multiview, b_inf))
+        for line in [*self.medium_evidence.multiview_lines, *self.medium_evidence.lines()]:
+            info(f"medium evidence: {line}")
+        medium = self.medium_evidence.medium
+        observed = observe_points(scene.points.float(), cameras, images)
+        colors = dehazed_colors(scene.points.float(), scene.point_colors, cameras, self.dataset_scale, medium,
+                                observed, scene.cameras if mc.dehaze_unseen_with_all_poses else None)
+        return dataclasses.replace(estimate, beta_d=medium[0], beta_b=medium[1], b_inf=medium[2],
+                                   clean_colors=colors)
+
     def run_notes(self) -> dict[str, dict]:
         """'medium_report': the identifiability report on the estimate the run started from
         (`--model.medium.report`); 'water': the verdict on whether there is water at all, and whether the model
@@ -160,6 +184,8 @@ class UW3DGSModel(GaussianSplattingModel):
         notes = {}
         if self.water is not None:
             notes["water"] = {**self.water.to_json(), "collapsed": bool(self.water_free)}
+        if self.medium_evidence is not None:
+            notes["medium_evidence"] = self.medium_evidence.to_json()
         report = self.medium_report
         if report is not None:
             notes["medium_report"] = {**report.to_json(), "lines": report.lines(), "weak": weak_medium_action(report)}
