@@ -13,11 +13,12 @@ identified by range diversity, else the single-image one (identified by the far 
 identified). The multi-view fit is then made with B_inf held where it did not come from it, so the betas of a
 channel are fitted with the B_inf used. Each beta is taken from the estimate that identifies it, the one with the
 smaller spread where both do; where neither does, the single-image value is kept (today's start) and reported as
-not identified.
+not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -121,6 +122,9 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
                                                    multi.value, b_reason[c]))
                 continue
             ok, uncertainty, why = _single_verdict(report, name, c)
+            if b_source[c] == NOT_IDENTIFIED:  # the multi-view betas were fitted with a B_inf nothing pins
+                multi = dataclasses.replace(multi, identified=False,
+                                            reason=f"fitted with B_inf held at {b_inf[c]:.3f}, which is not identified")
             if multi.identified and (not ok or multi.spread <= uncertainty):
                 check = EvidenceCheck(name, CHANNELS[c], multi.value, RANGE_DIVERSITY, single_value, multi.value)
             elif ok:

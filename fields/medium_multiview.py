@@ -77,11 +77,12 @@ class MultiviewConfig(CheckedConfig):
     """The smallest automatic loss scale: one grey level of 8-bit images."""
     max_iterations: int = 100
     """Levenberg-Marquardt iterations per fit."""
-    grid_steps: int = 32
+    grid_steps: int = 24
     """Starting grid: this many log-spaced candidates for beta_D and for beta_B (optical depths 0.01-10 at the
     median range)."""
-    max_grid_observations: int = 20_000
-    """Observations (a random subset of whole points) in the starting grid search."""
+    max_grid_observations: int = 10_000
+    """Observations (a random subset of whole points) in the starting grid search (each bootstrap refit draws its
+    own)."""
     max_observations: int = 30_000
     """Observations (a random subset of whole points) in the fit and each bootstrap refit."""
     color_drift: float = 0.06
@@ -513,17 +514,20 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
     boot = []
     for _ in range(config.resamples):
         new_ids, picked = bootstrap_observations(sub_ids, generator)
+        # the whole fit again, starting grid included: where the cost has a second valley, resamples that fall into
+        # it show as spread (refits started at the fit would stay in its valley and report it as pinned)
         refit = fit_multiview(new_ids, obs[1][sub][picked], obs[2][sub][picked], weights[sub][picked], b_inf,
-                              config, start=fit.medium, loss_scale=fit.loss_scale)
+                              config, loss_scale=fit.loss_scale)
         boot.append(torch.stack([t.double() for t in refit.medium]))
     values = torch.stack([t.double() for t in fit.medium])  # [3 params, 3 channels]
     lo, hi = torch.quantile(torch.stack(boot), torch.tensor([0.05, 0.95], dtype=torch.float64), dim=0)
     spread = (hi - lo) / 2 / values.abs().clamp_min(1e-9)
-    for k, name in enumerate(PARAMETERS):
+    checks: dict[tuple[str, int], MultiviewCheck] = {}
+    for k, name in reversed(list(enumerate(PARAMETERS))):  # B_inf, beta_B, beta_D: each leans on the ones before
         for c in range(3):
             if name == "B_inf" and held[c]:
-                result.checks.append(MultiviewCheck(name, CHANNELS[c], float(values[k, c]), 0.0, False,
-                                                    "held at the value given (not fitted here)"))
+                checks[(name, c)] = MultiviewCheck(name, CHANNELS[c], float(values[k, c]), 0.0, False,
+                                                   "held at the value given (not fitted here)")
                 continue
             why = []
             if span_points < config.min_span_points:
@@ -535,8 +539,17 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
                 why.append(f"the median point spans {depth:.2f} optical depths: a {config.color_drift:.0%} drift of "
                            f"the surfaces' colours with range that is not the water's would move it by "
                            f"{config.color_drift / max(depth, 1e-9):.0%} (> {config.tolerance:.0%})")
-            result.checks.append(MultiviewCheck(name, CHANNELS[c], float(values[k, c]), float(spread[k, c]),
-                                                not why, "; ".join(why)))
+            # the backscatter curve is what the direct signal is read after: a channel whose curve is not pinned
+            # leaves its beta_D unpinned too, whatever its own bootstrap says (one valley can hold it still)
+            leans = {"B_inf": (), "beta_B": ("B_inf",), "beta_D": ("B_inf", "beta_B")}[name]
+            weak = [other for other in leans
+                    if not (other == "B_inf" and held[c]) and not checks[(other, c)].identified]
+            if weak and not why:
+                why.append(f"fitted with a {' and '.join(weak)} that is not identified: the backscatter it leaves "
+                           "moves with it")
+            checks[(name, c)] = MultiviewCheck(name, CHANNELS[c], float(values[k, c]), float(spread[k, c]),
+                                               not why, "; ".join(why))
+    result.checks = [checks[(name, c)] for name in PARAMETERS for c in range(3)]
     return result
 
 

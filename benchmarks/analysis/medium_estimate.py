@@ -1,6 +1,7 @@
 """The point-based medium estimate alone (no training) on versions of the built-in synthetic scene.
 
     python benchmarks/analysis/medium_estimate.py [--residual] [--report]
+    python benchmarks/analysis/medium_estimate.py --survey [--variants NAME ...]
 
 For the scene without open water or dark surfaces (version 1: tilt 35, no patches), the same scene
 looking up at open water, and version 2 (open water and dark patches, the default), the estimate is run
@@ -8,23 +9,109 @@ with B_inf read off the open water (where the empty cells hold enough pixels) an
 printed beside the true medium. Scenes are generated into the cache on first use (about a minute each).
 `--residual` fits with Sea-thru's residual term (`--model.medium.estimate-residual`); `--report` prints the
 identifiability report (fields/medium_identifiability.py) under each row.
+
+`--survey` compares, on the survey variants (SURVEYS: passes over the same seabed at several altitudes, with and
+without open water, darkest surfaces at 3%, 10% or textured; a medium that varies across the scene; the forward
+pass for reference), the single-image estimate (`--model.medium.init estimate`), the multi-view one
+(fields/medium_multiview.py) and their combination by evidence (`--model.medium.init multiview`,
+fields/medium_evidence.py) against the truth, before any training: one markdown table of errors in % (R/G/B;
+beta_D and beta_B scored as fields over the seabed points, as the medium-recovery benchmark does), what each calls
+not identified, and the sources of the combined estimate.
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from types import SimpleNamespace
 
+import torch
+from medium_recovery import medium_errors  # benchmarks/analysis/medium_recovery.py, next to this script: its scoring
 from torch import Tensor
 
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.fields.medium import MediumGridConfig
-from uw3dgs.fields.medium_estimate import estimate_medium, open_water_color
+from uw3dgs.fields.medium_estimate import estimate_from_views, estimate_medium, open_water_color
+from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED, combine_by_evidence
 from uw3dgs.fields.medium_identifiability import assess_medium
+from uw3dgs.fields.medium_multiview import observe_and_estimate
 
 SCENES = {"version 1 (tilt 35, no patches)": (35.0, 0), "tilt 55, no patches": (55.0, 0),
           "version 2 (tilt 55, dark patches)": (55.0, 60)}
+
+
+# name -> scene options (SyntheticSceneConfig fields)
+SURVEYS: dict[str, dict] = {
+    "forward, open water": {},
+    "forward, no open water, darkest 10%": {"open_water": False, "dark_patch_albedo": 0.1},
+    "2 passes (3, 6 m), open water": {"pass_altitudes": (3.0, 6.0)},
+    "2 passes, no open water": {"pass_altitudes": (3.0, 6.0), "open_water": False},
+    "2 passes, no open water, darkest 10%": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                             "dark_patch_albedo": 0.1},
+    "2 passes, no open water, no dark patches": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                 "num_dark_patches": 0},
+    "3 passes (2, 4, 6 m), no open water, darkest 10%": {"pass_altitudes": (2.0, 4.0, 6.0), "open_water": False,
+                                                         "dark_patch_albedo": 0.1},
+    "2 passes, no open water, darkest 10%, gradient": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                       "dark_patch_albedo": 0.1, "medium_profile": "gradient"},
+    "2 passes, no open water, darkest 10%, turbid bottom": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                            "dark_patch_albedo": 0.1,
+                                                            "medium_profile": "turbid-bottom"},
+}
+
+
+def errors_text(errors: dict[str, list[float]]) -> str:
+    return " ; ".join("/".join(f"{100 * x:.0f}" for x in errors[k]) for k in ("beta_D", "beta_B", "B_inf"))
+
+
+def survey_row(name: str, options: dict) -> str:
+    """One table row: the three estimates' errors, what each flags, the combined estimate's sources."""
+    knobs = MediumGridConfig()
+    scene_config = SyntheticSceneConfig(**options)
+    datamanager = SyntheticDataManagerConfig(scene=scene_config).setup(data=None)
+    scene, train = datamanager.scene, datamanager.train_indices
+    cameras, images = [scene.cameras[i] for i in train], [scene.images[i] for i in train]
+    start = time.perf_counter()
+    single, water = estimate_from_views(knobs, scene, train)
+    report = assess_medium(*single.observations, single.fit, water, knobs.dark_bins, knobs.dark_share, False,
+                           knobs.identifiability, positions=single.positions, open_water=single.open_water)
+    seconds_single = time.perf_counter() - start
+    start = time.perf_counter()
+    runs = []
+
+    def fit(b_inf):
+        runs.append(observe_and_estimate(scene.points, cameras, images, float(scene.dataset_scale), knobs.multiview,
+                                         b_inf))
+        return runs[-1]
+
+    free = fit(None)  # the multi-view estimate on its own, B_inf fitted
+    combined = combine_by_evidence(single, report, water, lambda b_inf: free if b_inf is None else fit(b_inf))
+    seconds_multi = time.perf_counter() - start
+    beta_d, beta_b, b_inf = combined.medium
+    multi = SimpleNamespace(beta_d=free.fit.beta_d, beta_b=free.fit.beta_b, b_inf=free.fit.b_inf)
+    both = SimpleNamespace(beta_d=beta_d, beta_b=beta_b, b_inf=b_inf)
+    weak_single = ", ".join(f"{c.name} {c.channel}" for c in report.checks if not c.identifiable) or "-"
+    weak_multi = ", ".join(f"{c.name} {c.channel}" for c in free.checks if not c.identified) or "-"
+    sources = "; ".join(f"{n}: " + "/".join(c.source.split()[0] if c.source != NOT_IDENTIFIED else "NOT"
+                                             for c in combined.checks if c.name == n)
+                        for n in ("beta_D", "beta_B", "B_inf"))
+    clean = torch.stack([b["clean_image"] for b in datamanager.test_batches()])
+    darkest = float(torch.quantile(clean[clean.sum(-1) > 0].mean(-1).double(), 0.01))
+    return (f"| {name} | {free.span_ratio[1]:.2f} | {darkest:.3f} | "
+            f"{errors_text(medium_errors(scene, scene_config, single))} | {weak_single} | "
+            f"{errors_text(medium_errors(scene, scene_config, multi))} | {weak_multi} | "
+            f"{errors_text(medium_errors(scene, scene_config, both))} | {sources} | "
+            f"{seconds_single:.0f} / {seconds_multi:.0f} |")
+
+
+def survey_table(names: list[str]) -> None:
+    print("| variant | median span ratio | darkest 1% clean | single-image err % beta_D ; beta_B ; B_inf (R/G/B) "
+          "| single-image not identifiable | multi-view err % | multi-view not identified | combined err % | "
+          "combined: identified by (R/G/B) | seconds single / multi-view |")
+    print("|---|---:|---:|---|---|---|---|---|---|---:|")
+    for name in names:
+        print(survey_row(name, SURVEYS[name]), flush=True)
 
 
 def triple(values: Tensor | tuple[float, ...]) -> str:
@@ -35,7 +122,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--residual", action="store_true", help="fit with Sea-thru's residual term")
     parser.add_argument("--report", action="store_true", help="print the identifiability report under each row")
+    parser.add_argument("--survey", action="store_true",
+                        help="single-image, multi-view and combined estimates on the survey variants (SURVEYS)")
+    parser.add_argument("--variants", nargs="+", choices=list(SURVEYS), default=list(SURVEYS),
+                        help="with --survey: these variants only")
     args = parser.parse_args()
+    if args.survey:
+        survey_table(args.variants)
+        return
     knobs = MediumGridConfig()
     print("| scene | B_inf | beta_D | beta_B | B_inf used | seconds |")
     print("|---|---|---|---|---|---:|")
