@@ -13,7 +13,9 @@ identified by range diversity, else the single-image one (identified by the far 
 identified). The multi-view fit is then made with B_inf held where it did not come from it, so the betas of a
 channel are fitted with the B_inf used. Each beta is taken from the estimate that identifies it, the one with the
 smaller spread where both do; where neither does, the single-image value is kept (today's start) and reported as
-not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either.
+not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either, nor
+are any where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a
+homogeneous value is an average).
 """
 
 from __future__ import annotations
@@ -122,6 +124,9 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
                                                    multi.value, b_reason[c]))
                 continue
             ok, uncertainty, why = _single_verdict(report, name, c)
+            if getattr(report, "varies_in_space", False):  # a homogeneous fit is an average wherever it comes from
+                multi = dataclasses.replace(multi, identified=False, reason="the single-image report finds the "
+                                            "halves of the scene disagree: the medium varies in space")
             if b_source[c] == NOT_IDENTIFIED:  # the multi-view betas were fitted with a B_inf nothing pins
                 multi = dataclasses.replace(multi, identified=False,
                                             reason=f"fitted with B_inf held at {b_inf[c]:.3f}, which is not identified")

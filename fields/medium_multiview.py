@@ -24,14 +24,14 @@ Its combination with the single-image estimate by evidence is fields/medium_evid
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Literal
 
 import torch
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.fields.medium_identifiability import bootstrap_observations
+from uw3dgs.fields.medium_identifiability import bootstrap_observations, principal_axes
 from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 CHANNELS = "RGB"
@@ -90,6 +90,13 @@ class MultiviewConfig(CheckedConfig):
     shading, SfM noise landing on neighbouring texture): beta_D read over a point's span of tau optical depths moves
     by about color_drift / tau, so beta_D is not identified where that exceeds `tolerance` at the median point (the
     single-image report's `color_drift`)."""
+    spatial_tolerance: float = 0.3
+    """The betas vary in space when beta_D fitted to two halves of the points (split at the median along either of
+    their two main axes, B_inf held at the whole fit's) differs by more than this share of the whole fit's and by more
+    than twice its bootstrap half-spread, in at least `spatial_min_channels` channels (the single-image report's
+    rule, fields/medium_identifiability.py)."""
+    spatial_min_channels: int = 2
+    """See `spatial_tolerance`."""
     depth_cell: int = 4
     """Depth test: a point is visible in a view unless another point projects within the same cell of this many
     pixels and lies nearer by more than `depth_tolerance` of its range. 0 turns the test off."""
@@ -110,6 +117,8 @@ class MultiviewConfig(CheckedConfig):
             check_number(self, name, ge=1, integer=True)
         check_number(self, "seed", ge=0, integer=True)
         check_number(self, "depth_cell", ge=0, integer=True)
+        check_number(self, "spatial_tolerance", ge=0)
+        check_number(self, "spatial_min_channels", ge=1, le=3, integer=True)
         for name in ("tolerance", "loss_scale", "depth_tolerance", "color_drift"):
             check_number(self, name, ge=0)
         check_number(self, "min_loss_scale", gt=0)
@@ -305,8 +314,8 @@ def fit_multiview(point: Tensor, color: Tensor, z: Tensor, weight: Tensor | None
     """Fit beta_D, beta_B, B_inf [3] and clean colours J [P, 3] to observations color [M, 3] of points
     point [M] (ids 0..P-1, every id present) at ranges z [M] > 0, minimising the weighted robust loss of
     J_p exp(-beta_D z) + B_inf (1 - exp(-beta_B z)) - I. `weight` [M] (default 1) weighs each observation; `b_inf`
-    [3] holds B_inf where it is not NaN. `start` (beta_D, beta_B, B_inf) skips the grid search (the bootstrap's
-    refits start from the full fit); `loss_scale` [3] replaces the automatic scale. Float64 throughout; the betas
+    [3] holds B_inf where it is not NaN. `start` (beta_D, beta_B, B_inf) skips the grid search (to refine a known
+    medium); `loss_scale` [3] replaces the automatic scale. Float64 throughout; the betas
     are per unit of z."""
     config = config or MultiviewConfig()
     point, z = point.long(), z.double()
@@ -409,6 +418,26 @@ def _subset(point: Tensor, num_points: int, max_observations: int, seed: int) ->
     return torch.nonzero(torch.isin(point, chosen)).squeeze(1)
 
 
+def _spatial_disagreement(point: Tensor, color: Tensor, z: Tensor, weight: Tensor, positions: Tensor,
+                          whole: MultiviewFit, config: MultiviewConfig) -> list[float] | None:
+    """[3] the largest |beta_D of one half - the other's| / `whole`'s over the halves of the points (ids `point` [M]
+    into positions [P, 3]) split at the median along each of their two main axes, each half fitted with B_inf held at
+    `whole`'s; None where a half has fewer than `min_span_points` points."""
+    disagreement = torch.zeros(3, dtype=torch.float64)
+    for axis in principal_axes(positions):
+        coord = positions @ axis.double()
+        side = coord > coord.median()
+        betas = []
+        for half in (side, ~side):
+            rows = half[point]
+            ids, local = torch.unique(point[rows], return_inverse=True)
+            if len(ids) < config.min_span_points:
+                return None
+            betas.append(fit_multiview(local, color[rows], z[rows], weight[rows], whole.b_inf, config).beta_d.double())
+        disagreement = torch.maximum(disagreement, (betas[0] - betas[1]).abs() / whole.beta_d.double().clamp_min(1e-9))
+    return disagreement.tolist()
+
+
 # ------------------------------------------------------------------------------------------------ verdicts
 
 @dataclass
@@ -440,6 +469,10 @@ class MultiviewEstimate:
     """[3] channels whose B_inf was held (given), not fitted."""
     median_span: float = 0.0
     """The median over the fitted points of their largest less their smallest range (units of the ranges)."""
+    spatial_disagreement: list[float] | None = None
+    """[3] the largest |beta_D of one half of the points - the other's| / the whole fit's, over the two main axes
+    (None: not checked, no positions or too few points in a half)."""
+    varies_in_space: bool = False
     checks: list[MultiviewCheck] = field(default_factory=list)
 
     def check(self, name: str, c: int) -> MultiviewCheck:
@@ -453,6 +486,10 @@ class MultiviewEstimate:
             verdict = "identified by range diversity" if all(x.identified for x in checks) else "; ".join(
                 f"{x.channel} not identified: {x.reason}" for x in checks if not x.identified)
             out.append(f"multi-view {name} ({values}): {verdict}")
+        if self.spatial_disagreement is not None:
+            halves = "/".join(f"{x:.0%}" for x in self.spatial_disagreement)
+            out.append(f"multi-view: halves of the scene give beta_D {halves} apart: "
+                       f"{'varies in space' if self.varies_in_space else 'homogeneous within the tolerance'}")
         lo, mid, hi = self.span_ratio
         out.append(f"multi-view: {self.points} points seen over a range span, {self.span_points} of them over a "
                    f"ratio >= its threshold; span ratio {lo:.2f}/{mid:.2f}/{hi:.2f} (10/50/90%), median span "
@@ -460,7 +497,6 @@ class MultiviewEstimate:
         return out
 
     def to_json(self) -> dict:
-        from dataclasses import asdict
         out = {k: v for k, v in asdict(self).items() if k != "fit"}
         if self.fit is not None:
             out["medium"] = {name: t.tolist() for name, t in zip(PARAMETERS, self.fit.medium, strict=True)}
@@ -474,14 +510,15 @@ def observe_and_estimate(points: Tensor, cameras: list[Camera], images: list[Ten
     config = config or MultiviewConfig()
     point, color, z = visible_observations(points, cameras, images, config.depth_cell, config.depth_tolerance,
                                            config.match_footprint)
-    return multiview_estimate(point, color, z * dataset_scale, config, b_inf)
+    return multiview_estimate(point, color, z * dataset_scale, config, b_inf, positions=points)
 
 
 def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: MultiviewConfig | None = None,
-                       b_inf: Tensor | None = None) -> MultiviewEstimate:
+                       b_inf: Tensor | None = None, positions: Tensor | None = None) -> MultiviewEstimate:
     """The multi-view medium of observations color [M, 3] of points point [M] (any ids) at ranges z [M] (the unit
     of the betas), with a bootstrap over points and a verdict per parameter and channel (module doc). `b_inf` [3]
-    holds B_inf where it is not NaN (read off open water, say): those are reported as held, not identified here."""
+    holds B_inf where it is not NaN (read off open water, say): those are reported as held, not identified here.
+    `positions` [P, 3] (indexed by the ids of `point`) allow the check of a medium that varies across the scene."""
     config = config or MultiviewConfig()
     ids, point = torch.unique(point.long(), return_inverse=True)
     count, ratio = point_spans(point, z, len(ids))
@@ -520,8 +557,16 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
                               config, loss_scale=fit.loss_scale)
         boot.append(torch.stack([t.double() for t in refit.medium]))
     values = torch.stack([t.double() for t in fit.medium])  # [3 params, 3 channels]
+    if positions is not None:
+        where = torch.zeros(int(sub_ids.max()) + 1, 3, dtype=torch.float64)
+        where[sub_ids] = positions.double()[ids[point[rows]][sub]]
+        result.spatial_disagreement = _spatial_disagreement(sub_ids, obs[1][sub], obs[2][sub], weights[sub], where,
+                                                            fit, config)
     lo, hi = torch.quantile(torch.stack(boot), torch.tensor([0.05, 0.95], dtype=torch.float64), dim=0)
     spread = (hi - lo) / 2 / values.abs().clamp_min(1e-9)
+    if result.spatial_disagreement is not None:
+        result.varies_in_space = sum(d > config.spatial_tolerance and d > 2 * float(spread[0, c])
+                                     for c, d in enumerate(result.spatial_disagreement)) >= config.spatial_min_channels
     checks: dict[tuple[str, int], MultiviewCheck] = {}
     for k, name in reversed(list(enumerate(PARAMETERS))):  # B_inf, beta_B, beta_D: each leans on the ones before
         for c in range(3):
@@ -544,6 +589,11 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
             leans = {"B_inf": (), "beta_B": ("B_inf",), "beta_D": ("B_inf", "beta_B")}[name]
             weak = [other for other in leans
                     if not (other == "B_inf" and held[c]) and not checks[(other, c)].identified]
+            if name != "B_inf" and result.varies_in_space:
+                why.append("varies in space: the halves of the scene give beta_D "
+                           f"{'/'.join(f'{x:.0%}' for x in result.spatial_disagreement)} apart (> "
+                           f"{config.spatial_tolerance:.0%} in {config.spatial_min_channels}+ channels); a homogeneous "
+                           "estimate is an average")
             if weak and not why:
                 why.append(f"fitted with a {' and '.join(weak)} that is not identified: the backscatter it leaves "
                            "moves with it")

@@ -135,6 +135,26 @@ def test_every_parameter_is_not_identified_when_every_point_is_seen_over_a_tiny_
     assert any("not identified" in line for line in estimate.lines())
 
 
+def test_a_medium_that_thickens_across_the_scene_is_flagged_and_homogeneous_water_is_not():
+    """Points spread over x in [-5, 5]; the betas are 1.6x thicker where x > 0: the halves of the points disagree and
+    every beta is flagged. The same points through homogeneous water pass."""
+    point, color, z, _ = surveyed_points(300, noise=0.005, outliers=0.0, single=0.0, seed=2)
+    x = torch.linspace(-5, 5, 300, dtype=torch.float64)
+    positions = torch.stack([x, 0.3 * torch.rand(300, generator=torch.Generator().manual_seed(4),
+                                                 dtype=torch.float64), torch.zeros(300, dtype=torch.float64)], -1)
+    config = MultiviewConfig(resamples=3)
+    homogeneous = multiview_estimate(point, color, z, config, positions=positions)
+    assert not homogeneous.varies_in_space and max(homogeneous.spatial_disagreement) < 0.3
+    factor = torch.where(x > 0, 1.6, 1.0)[point][:, None]
+    bd, bb, b = (torch.tensor(v, dtype=torch.float64) for v in (BETA_D, BETA_B, B_INF))
+    clean = 0.1 + 0.7 * torch.rand(300, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    thick = clean[point] * torch.exp(-bd * factor * z[:, None]) + b * (1 - torch.exp(-bb * factor * z[:, None]))
+    varying = multiview_estimate(point, thick, z, config, positions=positions)
+    assert varying.varies_in_space
+    assert not any(c.identified for c in varying.checks if c.name != "B_inf")
+    assert all("varies in space" in c.reason for c in varying.checks if c.name != "B_inf")
+
+
 def test_points_seen_at_one_range_only_give_no_fit_and_say_why():
     point, color, z, _ = surveyed_points(50, single=1.0)
     estimate = multiview_estimate(point, color, z)
