@@ -115,6 +115,7 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
     multiview: MultiviewEstimate = free if bool(hold.isnan().all()) or (
         open_water is not None and bool((hold == open_water.double()).all())) else fit_multiview(hold)
     result = EvidenceReport(multiview_lines=multiview.lines())
+    varies = bool(getattr(report, "varies_in_space", False)) or free.varies_in_space or multiview.varies_in_space
     for name in PARAMETERS:
         for c in range(3):
             multi = multiview.check(name, c)
@@ -124,9 +125,10 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
                                                    multi.value, b_reason[c]))
                 continue
             ok, uncertainty, why = _single_verdict(report, name, c)
-            if getattr(report, "varies_in_space", False):  # a homogeneous fit is an average wherever it comes from
-                multi = dataclasses.replace(multi, identified=False, reason="the single-image report finds the "
-                                            "halves of the scene disagree: the medium varies in space")
+            if varies:  # a homogeneous value is an average, whichever estimate it comes from
+                multi = dataclasses.replace(multi, identified=False, reason="the halves of the scene disagree: the "
+                                            "medium varies in space")
+                ok, why = False, multi.reason
             if b_source[c] == NOT_IDENTIFIED:  # the multi-view betas were fitted with a B_inf nothing pins
                 multi = dataclasses.replace(multi, identified=False,
                                             reason=f"fitted with B_inf held at {b_inf[c]:.3f}, which is not identified")

@@ -235,6 +235,16 @@ def test_each_parameter_comes_from_the_evidence_that_pins_it():
     combined = combine_by_evidence(single, report, water, fit)
     assert [c.source for c in combined.checks if c.name == "B_inf"] == [OPEN_WATER] * 3
     assert len(calls) == 1 and torch.equal(calls[0], water.double())
+    # a medium that varies in space: no homogeneous value is identified, whichever estimate it comes from
+
+    def varying(b_inf):
+        result = fit(b_inf)
+        result.varies_in_space = True
+        return result
+
+    combined = combine_by_evidence(single, report, water, varying)
+    assert all(c.source == NOT_IDENTIFIED and "varies in space" in c.reason for c in combined.checks
+               if c.name != "B_inf")
 
 
 def test_the_survey_passes_look_at_the_same_seabed_from_each_altitude(tmp_path):
