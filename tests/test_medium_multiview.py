@@ -108,6 +108,7 @@ def test_the_fit_is_a_minimum_of_the_robust_cost_that_scipy_cannot_improve():
         np.testing.assert_allclose(np.exp(ours[:3]), np.exp(ref.x[:3]), rtol=1e-3)
 
 
+@pytest.mark.slow  # whole bootstrapped estimates: tens of seconds each on two cores
 def test_the_estimate_recovers_a_known_medium_from_noisy_points_with_outliers_and_single_ranges():
     """500 points x 5 views, 1% noise, 5% outliers, a fifth of the points at one range: every parameter the verdict
     calls identified is within 15% of the truth (G and B all of them; red, whose veiling light is 20 grey levels
@@ -135,6 +136,7 @@ def test_every_parameter_is_not_identified_when_every_point_is_seen_over_a_tiny_
     assert any("not identified" in line for line in estimate.lines())
 
 
+@pytest.mark.slow  # whole bootstrapped estimates: tens of seconds each on two cores
 def test_a_medium_that_thickens_across_the_scene_is_flagged_and_homogeneous_water_is_not():
     """Points spread over x in [-5, 5]; the betas are 1.6x thicker where x > 0: the halves of the points disagree and
     every beta is flagged. The same points through homogeneous water pass."""
@@ -291,6 +293,7 @@ def test_the_gradient_medium_steps_smoothly_across_the_scene():
     assert cache_key(dataclasses.replace(config, gradient_length=3.0)) != cache_key(config)
 
 
+@pytest.mark.slow  # whole bootstrapped estimates: tens of seconds each on two cores
 def test_the_multiview_start_sets_the_combined_medium_and_pulls_toward_it(make_config):
     """`--model.medium.init multiview`: the model starts from the medium combined by evidence, L_beta pulls toward
     it, the colours are de-hazed with it, and the run's notes say where each parameter came from."""
