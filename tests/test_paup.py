@@ -391,12 +391,13 @@ def test_uncertainty_weighted_depth_against_a_per_gaussian_sum():
         num = model.render(camera, depth_weights=weights * 0 + 1)  # weights of one: the plain depth
     torch.testing.assert_close(num["depth"], plain["depth"], rtol=1e-5, atol=1e-6)
     # brute force: composite (d_i z_i) and d_i as features with the reference rasterizer in float64
+    from uw3dgs.render import Splats
     from uw3dgs.render.reference import rasterize_reference
 
     m, s, q, o = (t.double() for t in model.gaussians.activated())
     feats = torch.stack([weights.double(), weights.double() * z.double()], dim=-1)
-    ref = rasterize_reference(m, q, s, o, feats, camera.viewmat.double(), camera.K.double(), camera.width,
-                              camera.height, model.config.raster)
+    camera64 = Camera(camera.viewmat.double(), camera.K.double(), camera.width, camera.height)
+    ref = rasterize_reference(Splats(m, q, s, o, feats), camera64, model.config.raster)
     covered = ref.render[..., 0] > COVERAGE_EPS
     expected = ref.render[..., 1][covered] / ref.render[..., 0][covered]
     torch.testing.assert_close(got["depth"][covered].double(), expected, rtol=1e-4, atol=1e-5)
