@@ -23,7 +23,7 @@ from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import RasterOutput, RasterSettings, rasterize
+from uw3dgs.render import RasterOutput, RasterSettings, Splats, rasterize
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig, DensityControl
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import depth_to_image
@@ -112,7 +112,7 @@ class GaussianSplattingModel(Model):
             z = means @ camera.viewmat[2, :3] + camera.viewmat[2, 3]
             colors = torch.cat([colors, depth_weights[:, None], (depth_weights * z)[:, None]], dim=-1)
         with section("rasterize"):
-            out = rasterize(means, quats, scales, opacities, colors, camera, self.config.raster, projection)
+            out = rasterize(Splats(means, quats, scales, opacities, colors), camera, self.config.raster, projection)
         if self.training and out.means2d.requires_grad:
             out.means2d.retain_grad()  # density control reads the screen-space gradient
         covered = out.alpha > COVERAGE_EPS

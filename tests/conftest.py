@@ -6,6 +6,7 @@ import dataclasses
 import inspect
 import os
 import re
+import time
 from pathlib import Path
 
 import pytest
@@ -17,6 +18,7 @@ from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
+from uw3dgs.registry import METHODS
 
 torch.set_num_threads(2)
 # Every process a test starts (uw-train, a grid's cells, uw-render, ...) loads the compiled kernels this session
@@ -47,6 +49,32 @@ def tiny_train_config(output_dir: Path, cache_dir: Path, scene: SyntheticSceneCo
         base, model=model, max_num_iterations=steps, output_dir=output_dir, progress=False, device="cpu",
         steps_per_save=20, steps_per_eval_image=20, steps_per_eval_all_images=20,
         datamanager=SyntheticDataManagerConfig(scene=scene, cache_dir=cache_dir), **overrides)
+
+
+QUICK_REPORT = {"resamples": 5, "steps": 60, "max_observations": 4000}
+"""The medium report's bootstrap at the sizes tests/test_medium_estimate.py checks it with: the report every uw3dgs run
+prints and saves at its start (not what the end-to-end tests check) in a third of the time on the tiny scene."""
+QUICK_REPORT_ARGS = [f"--model.medium.identifiability.{k.replace('_', '-')}={v}" for k, v in QUICK_REPORT.items()]
+"""The same as uw-train options."""
+
+
+def as_uw3dgs(base: TrainConfig, name: str = "uw3dgs") -> TrainConfig:
+    """`base` (a `tiny_train_config`) as a run of `name` (uw3dgs or a variant): the method's model and optimizers,
+    base's shrunk schedules, the QUICK_REPORT medium report."""
+    spec = METHODS[name].config
+    medium = spec.model.medium
+    medium = dataclasses.replace(medium, identifiability=dataclasses.replace(medium.identifiability, **QUICK_REPORT))
+    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
+                                medium=medium)
+    return dataclasses.replace(base, method_name=name, model=model, optimizers=spec.optimizers)
+
+
+@pytest.fixture(scope="session")
+def tiny_uw3dgs_trainer(tmp_path_factory, cache_dir, tiny_scene_config) -> Trainer:
+    """A finished 20-step uw3dgs run on the tiny scene, trained once for the tests that read it (export, viewer, the
+    benchmark scripts). A test that changes its model or folder puts them back."""
+    base = tiny_train_config(tmp_path_factory.mktemp("uw3dgs-run"), cache_dir, tiny_scene_config, steps=20)
+    return train(as_uw3dgs(base))
 
 
 @pytest.fixture
@@ -121,3 +149,29 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         if isinstance(item, pytest.Function) and "slow" not in item.keywords and _is_end_to_end(item):
             item.add_marker(pytest.mark.slow)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--cpu-times", metavar="FILE", default=None,
+                     help="append one line per test to FILE: its id, CPU seconds (this process and the child "
+                          "processes it waited for), wall seconds and the 1-minute load average, tab-separated")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    """With --cpu-times: a test's CPU time, setup (its fixtures' training) included, which a busy machine inflates
+    far less than its wall time."""
+    path = item.config.getoption("--cpu-times")
+    if path is None:
+        yield
+        return
+
+    def cpu() -> float:
+        t = os.times()
+        return t.user + t.system + t.children_user + t.children_system
+
+    cpu_start, wall_start = cpu(), time.perf_counter()
+    yield
+    with open(path, "a") as out:
+        out.write(f"{item.nodeid}\t{cpu() - cpu_start:.2f}\t{time.perf_counter() - wall_start:.2f}\t"
+                  f"{os.getloadavg()[0]:.2f}\n")

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import QUICK_REPORT_ARGS
 
 from uw3dgs.bench.cell import LOG_NAME, State, cell_state
 from uw3dgs.bench.executors import local_threads
@@ -21,6 +22,7 @@ from uw3dgs.engine.checkpoint import list_checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SCENE = REPO.parent / "shared" / "data" / "seathru-nerf" / "IUI3-RedSea"
+QUICK = ", ".join(QUICK_REPORT_ARGS)
 
 TINY_GRID = """
 output_dir: {out}
@@ -30,8 +32,9 @@ datasets:
     datamanager: synthetic
     args: [--datamanager.scene.width, 40, --datamanager.scene.height, 30, --datamanager.scene.num-views, 10]
 seeds: [0, 1]
-args: [--max-num-iterations, {steps}, --steps-per-save, 20, --steps-per-eval-image, 1000,
+args: [--max-num-iterations, {steps}, --steps-per-save, 10, --steps-per-eval-image, 1000,
        --steps-per-eval-all-images, 1000]
+method_args: {{uw3dgs: [{quick_report}]}}
 metrics: [psnr, ssim, uri_psnr, num_gaussians]
 """
 
@@ -137,7 +140,7 @@ def killed_and_resumed(tmp_path_factory, cache_dir):
     again to the end. Returns (grid file, output dir, env, what the first run left, the second run's output)."""
     root = tmp_path_factory.mktemp("bench")
     out = root / "out"
-    grid_file = write(root / "grid.yaml", TINY_GRID.format(out=out, steps=60))
+    grid_file = write(root / "grid.yaml", TINY_GRID.format(out=out, steps=20, quick_report=QUICK))
     env = {**os.environ, "UW3DGS_CACHE": str(cache_dir), "OMP_WAIT_POLICY": "passive"}
     cells = load_grid(grid_file).cells()
     victim = cells[2]  # uw3dgs s0: the slowest to train, so the stop lands mid-run
@@ -167,7 +170,7 @@ def test_a_killed_grid_resumes_and_skips_finished_cells(killed_and_resumed):
     assert [states[c.name] for c in cells] == [State.DONE, State.DONE, State.RESUME, State.NEW], left["output"]
     assert "run the same uw-bench command again to resume them" in left["output"]
     stopped_at = left["checkpoints"][cells[2].name]
-    assert stopped_at and stopped_at[-1] != "step-000060.ckpt"
+    assert stopped_at and stopped_at[-1] != "step-000020.ckpt"
     # finished cells are not retrained: their checkpoints are the same files, their logs hold one training
     assert {c.name: [p.stat().st_mtime_ns for p in list_checkpoints(c.run_dir)] for c in cells[:2]} == left["mtimes"]
     for cell in cells[:2]:
@@ -188,9 +191,9 @@ def test_a_finished_grid_runs_nothing_and_other_settings_are_a_conflict(killed_a
     again = bench(str(grid_file), "--jobs", "1", env=env)
     output, _ = again.communicate(timeout=120)
     assert again.returncode == 0 and "4 done" in output and "running" not in output
-    changed = write(grid_file.with_name("longer.yaml"), TINY_GRID.format(out=out, steps=80))
+    changed = write(grid_file.with_name("longer.yaml"), TINY_GRID.format(out=out, steps=30, quick_report=QUICK))
     state, why = cell_state(load_grid(changed).cells()[0])
-    assert state is State.CONFLICT and "max_num_iterations (60 in the run, 80 in the grid)" in why
+    assert state is State.CONFLICT and "max_num_iterations (20 in the run, 30 in the grid)" in why
 
 
 @pytest.mark.slow

@@ -12,12 +12,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import tiny_train_config
+from conftest import as_uw3dgs, tiny_train_config
 
 from uw3dgs.data.scene import GroundTruth
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.registry import METHODS
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -35,15 +34,9 @@ def load_script(name: str):
 
 
 @pytest.fixture(scope="module")
-def uw3dgs_run(tmp_path_factory, cache_dir, tiny_scene_config):
-    spec = METHODS["uw3dgs"].config
-    base = tiny_train_config(tmp_path_factory.mktemp("runs"), cache_dir, tiny_scene_config, steps=20,
-                             timestamp="bench")
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
-    trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers))
-    trainer.setup()
-    trainer.train()
-    return trainer
+def uw3dgs_run(tiny_uw3dgs_trainer):
+    """The session's 20-step uw3dgs run (conftest)."""
+    return tiny_uw3dgs_trainer
 
 
 def cells(row: str) -> list[str]:
@@ -213,11 +206,9 @@ def test_training_step_times_every_way_and_leaves_the_current_code_installed(uw3
 
 def test_paup_cost_times_the_same_run_with_and_without_the_branch(tmp_path, cache_dir, tiny_scene_config,
                                                                    monkeypatch, capsys, keep_threads):
-    spec = METHODS["uw3dgs"].config
-    base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=20, timestamp="paup")
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
-                                paup=dataclasses.replace(spec.model.paup, start=10, every=5))
-    trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers))
+    config = as_uw3dgs(tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=20, timestamp="paup"))
+    paup = dataclasses.replace(config.model.paup, start=10, every=5)
+    trainer = Trainer(dataclasses.replace(config, model=dataclasses.replace(config.model, paup=paup)))
     trainer.setup()
     trainer.train()
     script = load_script("paup_cost")
@@ -252,10 +243,7 @@ def test_viewer_slowdown_runs_every_setting(tmp_path, cache_dir, tiny_scene_conf
     import socket
     from types import SimpleNamespace
 
-    spec = METHODS["uw3dgs"].config
-    base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=3)
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
-    tiny = dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers)
+    tiny = as_uw3dgs(tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=3))
     script = load_script("viewer_slowdown")
     monkeypatch.setattr(script, "METHODS", {"uw3dgs": SimpleNamespace(config=tiny)})
     with socket.socket() as s:  # a free port for the viewer

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from uw3dgs.cameras import Camera
 from uw3dgs.kernels import build as kernel_build
-from uw3dgs.render import RasterSettings, cpu_backend, masked_l1, rasterize
+from uw3dgs.render import RasterSettings, Splats, cpu_backend, masked_l1, rasterize
 from uw3dgs.render.rasterize import BACKENDS, select_backend
 from uw3dgs.render.reference import rasterize_reference
 
@@ -62,7 +62,7 @@ def test_matches_brute_force_autograd() -> None:
     def loss(out) -> Tensor:
         return (torch.cat([out.render, out.alpha[..., None], out.depth[..., None]], dim=-1) * weights).sum()
 
-    out = rasterize(*leaves, scene.camera, RasterSettings(tile_size=8, backend="cpu"))
+    out = rasterize(Splats(*leaves), scene.camera, RasterSettings(tile_size=8, backend="cpu"))
     grads = torch.autograd.grad(loss(out), leaves)
     ref = brute_force(Scene(*leaves, camera=scene.camera), settings)
     assert ref.terminated_pixels > 0
@@ -79,7 +79,7 @@ def test_gradcheck_small_scene() -> None:
     settings = RasterSettings(tile_size=8, backend="cpu")
 
     def render(*inputs: Tensor) -> tuple[Tensor, ...]:
-        out = rasterize(*inputs, scene.camera, settings)
+        out = rasterize(Splats(*inputs), scene.camera, settings)
         return out.render, out.alpha, out.depth
 
     inputs = tuple(t.clone().requires_grad_(True) for t in scene.inputs())
@@ -114,8 +114,8 @@ def test_no_grad_forward_equals_recording_forward() -> None:
     recorded, _ = run_with_grads(cpu_backend.rasterize_cpu, scene, torch.float32, settings)
     with torch.no_grad():
         cam = scene.camera
-        plain = cpu_backend.rasterize_cpu(*(t.float() for t in scene.inputs()), cam.viewmat.float(), cam.K.float(),
-                                          cam.width, cam.height, settings)
+        cam32 = Camera(cam.viewmat.float(), cam.K.float(), cam.width, cam.height)
+        plain = cpu_backend.rasterize_cpu(Splats(*(t.float() for t in scene.inputs())), cam32, settings)
     for name in ("render", "alpha", "depth", "means2d", "radii", "depths", "weight_sum", "pixel_count"):
         assert torch.equal(getattr(plain, name), getattr(recorded, name)), name
 
@@ -133,7 +133,7 @@ def test_opacity_only_backward_equals_full(dtype: torch.dtype) -> None:
         opacities = inputs[3].requires_grad_(True)
         if geometry:
             inputs[0].requires_grad_(True)
-        out = backend(*inputs, cam.viewmat, cam.K, cam.width, cam.height, RasterSettings())
+        out = backend(Splats(*inputs), cam, RasterSettings())
         (out.render * weights).sum().backward()
         return opacities.grad
 
@@ -154,7 +154,8 @@ def test_masked_l1_equals_render_then_mean(dtype: torch.dtype, reuse_lists: bool
     scene = random_scene(5, 3000, 96, 80)
     settings = RasterSettings(backend="cpu")
     means, quats, scales, opacities, features = (t.to(dtype) for t in scene.inputs())
-    full = rasterize(means, quats, scales, opacities, features.clone().requires_grad_(True), scene.camera, settings)
+    full = rasterize(Splats(means, quats, scales, opacities, features.clone().requires_grad_(True)), scene.camera,
+                     settings)
     projection = full if reuse_lists else dataclasses.replace(full, tile_lists=None)
     target = full.render.detach()  # as in training: where no kept-less Gaussian reaches, the difference is 0
     keep = torch.rand(len(means), generator=torch.Generator().manual_seed(0), dtype=dtype)
@@ -169,7 +170,7 @@ def test_masked_l1_equals_render_then_mean(dtype: torch.dtype, reuse_lists: bool
 
     def unfused(backend: str, target: Tensor = target) -> tuple[Tensor, Tensor, Tensor]:
         scaled = keep.clone().requires_grad_(True)
-        out = rasterize(means, quats, scales, opacities * scaled, features, scene.camera,
+        out = rasterize(Splats(means, quats, scales, opacities * scaled, features), scene.camera,
                         RasterSettings(backend=backend), projection=full)
         l1 = (target - out.render).abs().mean()
         (0.1 * l1).backward()
@@ -202,7 +203,7 @@ def test_masked_l1_equals_render_then_mean(dtype: torch.dtype, reuse_lists: bool
 
 def test_masked_l1_is_none_where_the_backend_has_no_fused_pass() -> None:
     scene = random_scene(5, 50)
-    full = rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="torch"))
+    full = rasterize(scene.splats(), scene.camera, RasterSettings(backend="torch"))
     target = torch.zeros(30, 40, 3, dtype=F64)
     assert masked_l1(full, scene.opacities, scene.features, target, scene.camera, RasterSettings(backend="torch")) \
         is None
@@ -212,12 +213,12 @@ def test_means2d_grad_and_empty_scene() -> None:
     scene = random_scene(9, 50)
     leaves = [t.float().requires_grad_(True) for t in scene.inputs()]
     cam = Camera(scene.camera.viewmat.float(), scene.camera.K.float(), 40, 30)
-    out = rasterize(*leaves, cam, RasterSettings(backend="cpu"))
+    out = rasterize(Splats(*leaves), cam, RasterSettings(backend="cpu"))
     out.means2d.retain_grad()
     out.render.sum().backward()
     assert out.means2d.grad is not None and out.means2d.grad.abs().sum() > 0
     empty = random_scene(5, 0)
-    out = rasterize(*empty.inputs(), empty.camera, RasterSettings(backend="cpu"))
+    out = rasterize(empty.splats(), empty.camera, RasterSettings(backend="cpu"))
     assert out.render.shape == (30, 40, 3) and out.alpha.abs().sum() == 0 and out.radii.shape == (0,)
 
 
@@ -240,11 +241,11 @@ def test_failed_build_warns_once_and_falls_back(monkeypatch: pytest.MonkeyPatch)
     scene = random_scene(10, 40)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        out = rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="cpu"))
-        rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="cpu"))
+        out = rasterize(scene.splats(), scene.camera, RasterSettings(backend="cpu"))
+        rasterize(scene.splats(), scene.camera, RasterSettings(backend="cpu"))
     messages = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert len(messages) == 1 and "no C++ compiler" in messages[0] and "falling back" in messages[0]
-    ref = rasterize_reference(*scene.inputs(), scene.camera.viewmat, scene.camera.K, 40, 30, RasterSettings())
+    ref = rasterize_reference(scene.splats(), scene.camera, RasterSettings())
     assert torch.equal(out.render, ref.render)
 
 

@@ -3,7 +3,6 @@ the dataset frame), the SH layout, the medium JSON against the model's own mediu
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from types import SimpleNamespace
@@ -17,7 +16,6 @@ from uw3dgs.cli.export import ExportArgs, run_export
 from uw3dgs.cli.export import entrypoint as uw_export
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.export.ply import PROPERTIES, gaussian_rows, write_ply
-from uw3dgs.registry import METHODS
 
 plyfile = pytest.importorskip("plyfile", reason="plyfile reads the PLY back (the dev extra installs it)")
 
@@ -76,14 +74,9 @@ def test_sh_above_the_rendered_degree_is_zero_and_a_lower_degree_is_padded(tmp_p
 
 
 @pytest.fixture(scope="module")
-def uw3dgs_run(tmp_path_factory, cache_dir, tiny_scene_config):
-    from conftest import tiny_train_config
-
-    base = tiny_train_config(tmp_path_factory.mktemp("out"), cache_dir, tiny_scene_config, steps=20)
-    spec = METHODS["uw3dgs"].config
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
-    config = dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers)
-    return train(config).run_dir / "config.yml"
+def uw3dgs_run(tiny_uw3dgs_trainer) -> Path:
+    """The config.yml of the session's 20-step uw3dgs run (conftest)."""
+    return tiny_uw3dgs_trainer.run_dir / "config.yml"
 
 
 def test_export_of_a_trained_run_matches_its_checkpoint(uw3dgs_run, tmp_path):

@@ -26,7 +26,7 @@ from test_rasterizer import assert_close_rel, assert_matches_reference, brute_fo
 from torch import Tensor
 
 from uw3dgs.cameras import Camera
-from uw3dgs.render import RasterSettings, gsplat_backend, rasterize
+from uw3dgs.render import RasterSettings, Splats, gsplat_backend, rasterize
 from uw3dgs.render.gsplat_backend import Kernels, rasterize_gsplat
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.rasterize import BACKENDS, select_backend
@@ -225,9 +225,8 @@ def test_glue_sh_colour_gradients() -> None:
         coeffs = sh.clone().requires_grad_(True)
         dirs = torch.nn.functional.normalize(scene.means - scene.camera.center, dim=-1)
         colours = (eval_sh(3, coeffs, dirs) + 0.5).clamp_min(0.0)
-        cam = scene.camera
-        out = fn(scene.means, scene.quats, scene.scales, scene.opacities, colours, cam.viewmat, cam.K, cam.width,
-                 cam.height, settings, **kwargs)  # fmt: skip
+        out = fn(Splats(scene.means, scene.quats, scene.scales, scene.opacities, colours), scene.camera, settings,
+                 **kwargs)
         (out.render * torch.linspace(-1, 1, 3, dtype=F64)).sum().backward()
         return out.render, coeffs.grad
 
@@ -247,9 +246,9 @@ def test_glue_empty_views(case: str) -> None:
     for settings, dtype in ((RasterSettings(), F64), (RasterSettings(**GSPLAT_ALPHA), F32)):
         leaves = [t.to(dtype).clone().requires_grad_(True) for t in scene.inputs()]
         cam = scene.camera
-        args = (cam.viewmat.to(dtype), cam.K.to(dtype), WIDTH, HEIGHT, settings)
-        out = rasterize_gsplat(*leaves, *args, kernels=torch_kernels())
-        ref = rasterize_reference(*[t.detach() for t in leaves], *args)
+        cam = Camera(cam.viewmat.to(dtype), cam.K.to(dtype), WIDTH, HEIGHT)
+        out = rasterize_gsplat(Splats(*leaves), cam, settings, kernels=torch_kernels())
+        ref = rasterize_reference(Splats(*[t.detach() for t in leaves]), cam, settings)
         assert out.render.shape == (HEIGHT, WIDTH, 3) and out.alpha.shape == out.depth.shape == (HEIGHT, WIDTH)
         torch.testing.assert_close(out.render.detach(), ref.render)
         assert torch.equal(out.pixel_count, ref.pixel_count) and torch.equal(out.radii, ref.radii)
@@ -386,14 +385,13 @@ def test_failed_kernel_load_warns_once(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_clear_errors() -> None:
     scene = random_scene(7, 10)
     cam = scene.camera
-    args = (*scene.inputs(), cam.viewmat, cam.K, cam.width, cam.height)
     with pytest.raises(ValueError, match="runs on CUDA tensors"):
-        rasterize_gsplat(*args, RasterSettings())
+        rasterize_gsplat(scene.splats(), cam, RasterSettings())
     with pytest.raises(ValueError, match="alpha_min"):
-        rasterize_gsplat(*args, RasterSettings(alpha_min=0.0))
+        rasterize_gsplat(scene.splats(), cam, RasterSettings(alpha_min=0.0))
     if "gsplat" in BACKENDS:
         with pytest.raises(ValueError, match="does not run on cpu"):
-            rasterize(*scene.inputs(), cam, RasterSettings(backend="gsplat"))
+            rasterize(scene.splats(), cam, RasterSettings(backend="gsplat"))
 
 
 def test_fused_path_conditions() -> None:
@@ -463,10 +461,10 @@ def test_cuda_auto_picks_gsplat(cuda_kernels) -> None:
     scene = random_scene(9, 300, 64, 48)
     leaves = [t.float().cuda().requires_grad_(True) for t in scene.inputs()]
     cam = Camera(scene.camera.viewmat.float().cuda(), scene.camera.K.float().cuda(), 64, 48)
-    out = rasterize(*leaves, cam)
+    out = rasterize(Splats(*leaves), cam)
     out.means2d.retain_grad()
     out.render.sum().backward()
     assert out.means2d.grad is not None and out.means2d.grad.abs().sum() > 0
     assert math.isfinite(out.render.sum().item())
-    ref = rasterize_reference(*[t.detach() for t in leaves], cam.viewmat, cam.K, 64, 48, RasterSettings())
+    ref = rasterize_reference(Splats(*[t.detach() for t in leaves]), cam, RasterSettings())
     assert_close_rel(out.render.detach(), ref.render, F32, "render")

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import tiny_train_config, train
+from conftest import as_uw3dgs, tiny_train_config, train
 
 from uw3dgs.cli.eval import EvalArgs, print_results, run_eval
 from uw3dgs.cli.eval import entrypoint as uw_eval
@@ -127,14 +127,9 @@ def test_resume_refuses_options_that_change_parameter_shapes(trained_run, tmp_pa
 
 
 def test_resume_refuses_another_medium_naming_the_option(make_config):
-    from uw3dgs.registry import METHODS
-
-    spec = METHODS["uw3dgs"].config
-    base = dataclasses.replace(make_config(steps=4, timestamp="medium"), steps_per_save=4)
-    medium = dataclasses.replace(spec.model.medium, resolution=8, components=2)
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
-                                medium=medium)
-    run = train(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers)).run_dir
+    config = as_uw3dgs(dataclasses.replace(make_config(steps=4, timestamp="medium"), steps_per_save=4))
+    medium = dataclasses.replace(config.model.medium, resolution=8, components=2)
+    run = train(dataclasses.replace(config, model=dataclasses.replace(config.model, medium=medium))).run_dir
     saved = str(run / "config.yml")
     cases = {("--model.medium-field", "medium-homogeneous"): r"--model\.medium-field \('medium-grid' in the "
                                                              r"checkpoint, 'medium-homogeneous' now\)",

@@ -134,7 +134,7 @@ def test_no_water_is_3dgs_and_no_gaussians_is_water() -> None:
     clear = PixelMedium(color=medium.color, sigma_bs=torch.zeros_like(medium.sigma_bs),
                         sigma_attn=torch.zeros_like(medium.sigma_attn))
     out = render_reference(scene, clear, settings)
-    plain = rasterize(*scene.inputs(), cam, settings)
+    plain = rasterize(scene.splats(), cam, settings)
     assert torch.equal(out.render, plain.render) and torch.equal(out.alpha, plain.alpha)
     torch.testing.assert_close(out.object, plain.render, rtol=0, atol=1e-15)
     # the water is then the background composited behind the Gaussians, c_med (1 - alpha)

@@ -155,8 +155,10 @@ def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_show
     bin_dir = fresh_venv / "bin"
     chosen = ["uw3dgs", "--model.medium-field", "demo-clear-water"]
     assert "--model.medium.turbidity-note" in run([str(bin_dir / "uw-train"), *chosen, "--help"], cwd="/").stdout
+    # the PyTorch paths of every kernel: the venv's own copy of the kernel sources (another path than the session's
+    # build) would otherwise be compiled again, minutes on a 2-core machine, for what this test does not check
     args = [*chosen, "--max-num-iterations", "2", "--steps-per-save", "2", "--no-progress", "--model.raster.backend",
-            "torch", "--output-dir", str(tmp_path / "out"), "--timestamp", "t", "synthetic",
+            "torch", "--model.kernels", "torch", "--output-dir", str(tmp_path / "out"), "--timestamp", "t", "synthetic",
             "--datamanager.scene.width", "32", "--datamanager.scene.height", "24", "--datamanager.scene.num-views",
             "9", "--datamanager.cache-dir", str(tmp_path / "cache")]
     run([str(bin_dir / "uw-train"), *args], cwd="/")

@@ -10,7 +10,7 @@ import math
 
 import pytest
 import torch
-from conftest import train, train_until_killed
+from conftest import as_uw3dgs, train, train_until_killed
 
 from uw3dgs.cameras import Camera
 from uw3dgs.data.scene import SceneData
@@ -20,17 +20,14 @@ from uw3dgs.kernels import build as kernel_build
 from uw3dgs.methods.gaussian_splatting import COVERAGE_EPS
 from uw3dgs.methods.uw3dgs import UW3DGSModelConfig, uw3dgs_optimizers
 from uw3dgs.methods.uw3dgs.paup import PAUP, FloaterScorer, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
-from uw3dgs.registry import METHODS
 from uw3dgs.strategy import DefaultStrategy, DensityControl
 
 
 def tiny_uw3dgs(make_config, name: str = "uw3dgs", steps: int = 30, paup_start: int = 5, **paup):
     """The tiny 3DGS schedule (densify from 10 every 10) on a uw3dgs variant, PAUP from `paup_start` every 5."""
-    spec = METHODS[name].config
-    base = make_config(steps=steps, timestamp=f"{name}-{paup_start}")
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians,
-                                paup=PAUPConfig(start=paup_start, every=5, **paup))
-    return dataclasses.replace(base, method_name=name, model=model, optimizers=spec.optimizers)
+    config = as_uw3dgs(make_config(steps=steps, timestamp=f"{name}-{paup_start}"), name)
+    return dataclasses.replace(config, model=dataclasses.replace(config.model, paup=PAUPConfig(start=paup_start,
+                                                                                                every=5, **paup)))
 
 
 # -- the statistics --
@@ -391,12 +388,13 @@ def test_uncertainty_weighted_depth_against_a_per_gaussian_sum():
         num = model.render(camera, depth_weights=weights * 0 + 1)  # weights of one: the plain depth
     torch.testing.assert_close(num["depth"], plain["depth"], rtol=1e-5, atol=1e-6)
     # brute force: composite (d_i z_i) and d_i as features with the reference rasterizer in float64
+    from uw3dgs.render import Splats
     from uw3dgs.render.reference import rasterize_reference
 
     m, s, q, o = (t.double() for t in model.gaussians.activated())
     feats = torch.stack([weights.double(), weights.double() * z.double()], dim=-1)
-    ref = rasterize_reference(m, q, s, o, feats, camera.viewmat.double(), camera.K.double(), camera.width,
-                              camera.height, model.config.raster)
+    camera64 = Camera(camera.viewmat.double(), camera.K.double(), camera.width, camera.height)
+    ref = rasterize_reference(Splats(m, q, s, o, feats), camera64, model.config.raster)
     covered = ref.render[..., 0] > COVERAGE_EPS
     expected = ref.render[..., 1][covered] / ref.render[..., 0][covered]
     torch.testing.assert_close(got["depth"][covered].double(), expected, rtol=1e-4, atol=1e-5)

@@ -14,7 +14,7 @@ from uw3dgs.cameras import Camera
 from uw3dgs.fields.gaussians import GaussianField, GaussianFieldConfig
 from uw3dgs.kernels import build as kernel_build
 from uw3dgs.kernels.sh_colors import sh_colors
-from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render import RasterSettings, Splats, rasterize
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.rasterize import BACKENDS, register_backend, select_backend
 from uw3dgs.render.reference import rasterize_reference
@@ -35,14 +35,17 @@ class Scene:
     def inputs(self) -> tuple[Tensor, ...]:
         return self.means, self.quats, self.scales, self.opacities, self.features
 
+    def splats(self) -> Splats:
+        return Splats(*self.inputs())
+
 
 def run_with_grads(fn, scene: Scene, dtype: torch.dtype, settings: RasterSettings, device: str = "cpu",
                    seed: int = 1, **kwargs):  # fmt: skip
     """Outputs and gradients of a random linear loss over render, alpha, depth (and means2d's grad)."""
     leaves = [t.to(device, dtype).clone().requires_grad_(True) for t in scene.inputs()]
     cam = scene.camera
-    out = fn(*leaves, cam.viewmat.to(device, dtype), cam.K.to(device, dtype), cam.width, cam.height, settings,
-             **kwargs)  # fmt: skip
+    cam = Camera(cam.viewmat.to(device, dtype), cam.K.to(device, dtype), cam.width, cam.height)
+    out = fn(Splats(*leaves), cam, settings, **kwargs)
     out.means2d.retain_grad()
     gen = torch.Generator().manual_seed(seed)
     loss = sum((t * torch.randn(t.shape, generator=gen, dtype=dtype).to(device)).sum()
@@ -197,7 +200,7 @@ def brute_force(scene: Scene, settings: RasterSettings) -> BruteForce:
 def test_reference_matches_brute_force(seed: int, n: int, tile_size: int) -> None:
     scene = random_scene(seed, n, channels=4 if seed == 1 else 3)
     settings = RasterSettings(backend="torch", tile_size=tile_size)
-    out = rasterize(*scene.inputs(), scene.camera, settings)
+    out = rasterize(scene.splats(), scene.camera, settings)
     ref = brute_force(scene, settings)
     assert out.render.shape == (30, 40, scene.features.shape[1])
     assert out.alpha.shape == out.depth.shape == (30, 40)
@@ -229,7 +232,7 @@ def test_gradients_match_brute_force_autograd() -> None:
         stacked = torch.cat([out.render, out.alpha[..., None], out.depth[..., None]], dim=-1)
         return (stacked * weights).sum()
 
-    grads = torch.autograd.grad(loss(rasterize(*leaves, scene.camera, settings)), leaves)
+    grads = torch.autograd.grad(loss(rasterize(Splats(*leaves), scene.camera, settings)), leaves)
     ref = brute_force(Scene(*leaves, camera=scene.camera), settings)
     assert ref.terminated_pixels > 0
     ref_grads = torch.autograd.grad(loss(ref), leaves)
@@ -255,7 +258,7 @@ def test_gradcheck_tiny_scene() -> None:
     settings = RasterSettings(backend="torch", tile_size=8)
 
     def render(*inputs: Tensor) -> tuple[Tensor, ...]:
-        out = rasterize(*inputs, scene.camera, settings)
+        out = rasterize(Splats(*inputs), scene.camera, settings)
         return out.render, out.alpha, out.depth
 
     inputs = tuple(t.clone().requires_grad_(True) for t in scene.inputs())
@@ -265,7 +268,7 @@ def test_gradcheck_tiny_scene() -> None:
 def test_means2d_grad_is_populated() -> None:
     scene = _tiny_scene()
     leaves = [t.clone().requires_grad_(True) for t in scene.inputs()]
-    out = rasterize(*leaves, scene.camera)
+    out = rasterize(Splats(*leaves), scene.camera)
     out.means2d.retain_grad()
     out.render.sum().backward()
     assert out.means2d.grad is not None and out.means2d.grad.shape == (3, 2)
@@ -275,10 +278,10 @@ def test_means2d_grad_is_populated() -> None:
 
 def test_float32_matches_float64() -> None:
     scene = random_scene(4, 200)
-    out64 = rasterize(*scene.inputs(), scene.camera)
+    out64 = rasterize(scene.splats(), scene.camera)
     leaves = [t.float().requires_grad_(True) for t in scene.inputs()]
     cam32 = Camera(scene.camera.viewmat.float(), scene.camera.K.float(), 40, 30)
-    out32 = rasterize(*leaves, cam32)
+    out32 = rasterize(Splats(*leaves), cam32)
     out32.render.sum().backward()
     assert out32.render.dtype == torch.float32
     torch.testing.assert_close(out32.render.double(), out64.render, rtol=0, atol=2e-3)
@@ -287,7 +290,7 @@ def test_float32_matches_float64() -> None:
 
 def test_empty_scene_renders_nothing() -> None:
     scene = random_scene(5, 0)
-    out = rasterize(*scene.inputs(), scene.camera)
+    out = rasterize(scene.splats(), scene.camera)
     assert out.render.shape == (30, 40, 3) and out.alpha.abs().sum() == 0
 
 
@@ -352,7 +355,8 @@ def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: 
     settings = RasterSettings(backend=backend)
     means, quats, scales, opacities, features = (t.to(dtype) for t in scene.inputs())
     # recorded for a backward, as in training: the compiled backend then hands on its tile lists
-    full = rasterize(means, quats, scales, opacities, features.clone().requires_grad_(True), scene.camera, settings)
+    full = rasterize(Splats(means, quats, scales, opacities, features.clone().requires_grad_(True)), scene.camera,
+                     settings)
     assert (full.tile_lists is not None) == (backend == "cpu")
     keep = torch.rand(len(means), generator=torch.Generator().manual_seed(0), dtype=dtype)
     keep[:50] = 1e-4  # opacity x keep < alpha_min
@@ -360,7 +364,7 @@ def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: 
 
     def masked(**reuse) -> tuple[Tensor, ...]:
         scaled = keep.clone().requires_grad_(True)
-        out = rasterize(means, quats, scales, opacities * scaled, features, scene.camera, settings, **reuse)
+        out = rasterize(Splats(means, quats, scales, opacities * scaled, features), scene.camera, settings, **reuse)
         (out.render * weights).sum().backward()
         return out.render.detach(), scaled.grad, out.weight_sum, out.pixel_count.to(dtype)
 
@@ -373,8 +377,8 @@ def test_reused_projection_renders_lower_opacities_exactly(backend: str, dtype: 
         else:
             assert_close_rel(got, want, dtype, name)
     with pytest.raises(ValueError, match="no gradient to means"):
-        rasterize(means.clone().requires_grad_(True), quats, scales, opacities, features, scene.camera, settings,
-                  projection=full)
+        rasterize(Splats(means.clone().requires_grad_(True), quats, scales, opacities, features), scene.camera,
+                  settings, projection=full)
 
 
 def _sh_direct(l: int, m: int, d: Tensor) -> Tensor:
@@ -490,7 +494,7 @@ def test_backend_registry(monkeypatch: pytest.MonkeyPatch) -> None:
     assert BACKENDS["torch"].fn is rasterize_reference
     scene = _tiny_scene()
     with pytest.raises(ValueError, match="torch"):
-        rasterize(*scene.inputs(), scene.camera, RasterSettings(backend="no-such-backend"))
+        rasterize(scene.splats(), scene.camera, RasterSettings(backend="no-such-backend"))
 
     # The package re-exports the function `rasterize`, which shadows the module's name as an attribute.
     monkeypatch.setattr(importlib.import_module("uw3dgs.render.rasterize"), "BACKENDS", dict(BACKENDS))
@@ -503,7 +507,7 @@ def test_backend_registry(monkeypatch: pytest.MonkeyPatch) -> None:
     register_backend("fast", fake, devices=("cpu",), priority=100)
     register_backend("gpu-only", fake, devices=("cuda",), priority=200)
     assert select_backend("auto", torch.device("cpu")) == "fast"
-    rasterize(*scene.inputs(), scene.camera)
+    rasterize(scene.splats(), scene.camera)
     assert len(calls) == 1
     with pytest.raises(ValueError, match="does not run on cpu"):
         select_backend("gpu-only", torch.device("cpu"))

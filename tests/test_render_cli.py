@@ -12,12 +12,11 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 import torch
-from conftest import run_command, tiny_train_config, train
+from conftest import as_uw3dgs, run_command, tiny_train_config, train
 from PIL import Image
 
 from uw3dgs.cli.render import entrypoint, path_cameras
 from uw3dgs.engine.evaluator import load_trained
-from uw3dgs.registry import METHODS
 from uw3dgs.render.camera_path import (
     camera_to_world,
     interpolate_poses,
@@ -41,12 +40,7 @@ def _train_run(root: Path, cache_dir: Path, scene, method: str) -> Path:
     base = tiny_train_config(root, cache_dir, scene, steps=10)
     base = dataclasses.replace(base, steps_per_save=10, steps_per_eval_image=10, steps_per_eval_all_images=10,
                                timestamp=method)
-    if method != "3dgs":
-        spec = METHODS[method].config
-        model = dataclasses.replace(spec.model, densification=base.model.densification,
-                                    gaussians=base.model.gaussians)
-        base = dataclasses.replace(base, method_name=method, model=model, optimizers=spec.optimizers)
-    return train(base).run_dir / "config.yml"
+    return train(base if method == "3dgs" else as_uw3dgs(base, method)).run_dir / "config.yml"
 
 
 @pytest.fixture(scope="module")

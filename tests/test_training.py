@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import train, train_until_killed
+from conftest import as_uw3dgs, train, train_until_killed
 
 from uw3dgs.cli.eval import EvalArgs, run_eval
 from uw3dgs.config import load_config
@@ -120,12 +120,7 @@ def test_uw_eval_of_an_earlier_checkpoint_goes_beside_the_final_evaluation(make_
 
 @pytest.mark.parametrize("name", ["uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"])
 def test_uw3dgs_variants_train_and_report_their_metrics(make_config, name):
-    from uw3dgs.registry import METHODS
-
-    spec = METHODS[name].config
-    base = make_config(steps=12, timestamp=name)
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
-    trainer = train(dataclasses.replace(base, method_name=name, model=model, optimizers=spec.optimizers))
+    trainer = train(as_uw3dgs(make_config(steps=12, timestamp=name), name))
     losses, _ = trainer.train_step(13)
     has_medium = name != "uw3dgs-no-medium"
     assert ("beta_loss" in losses) == (name in ("uw3dgs", "uw3dgs-no-lz"))

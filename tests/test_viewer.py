@@ -3,7 +3,6 @@ numbers unchanged, its errors, and the page in headless Chromium (skipped withou
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import math
 import shutil
@@ -16,13 +15,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
-from conftest import run_command, train
+from conftest import as_uw3dgs, run_command, train
 
 from uw3dgs.engine.checkpoint import latest_checkpoint, load_checkpoint
 from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.medium.formation import Water, form_with_water
-from uw3dgs.registry import METHODS
 from uw3dgs.render.camera_path import matrix_to_quaternion
 from uw3dgs.viewer.camera import camera_to_viser, viser_to_camera
 from uw3dgs.viewer.render import learned_b_inf, render_image, render_outputs
@@ -39,18 +37,10 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def uw3dgs_config(base):
-    spec = METHODS["uw3dgs"].config
-    model = dataclasses.replace(spec.model, densification=base.model.densification, gaussians=base.model.gaussians)
-    return dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers)
-
-
 @pytest.fixture(scope="module")
-def uw3dgs_run(tmp_path_factory, cache_dir, tiny_scene_config):
-    from conftest import tiny_train_config
-
-    base = tiny_train_config(tmp_path_factory.mktemp("out"), cache_dir, tiny_scene_config, steps=20)
-    return train(uw3dgs_config(base)).run_dir / "config.yml"
+def uw3dgs_run(tiny_uw3dgs_trainer) -> Path:
+    """The config.yml of the session's 20-step uw3dgs run (conftest)."""
+    return tiny_uw3dgs_trainer.run_dir / "config.yml"
 
 
 def look_at_wxyz(position: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -145,7 +135,7 @@ def fake_client(camera) -> SimpleNamespace:
 
 
 def test_training_with_the_viewer_rendering_every_step_gives_the_same_numbers(make_config, monkeypatch):
-    plain = train(uw3dgs_config(make_config(steps=12, timestamp="plain")))
+    plain = train(as_uw3dgs(make_config(steps=12, timestamp="plain")))
     client = None
     original = Trainer._start_viewer
 
@@ -158,7 +148,7 @@ def test_training_with_the_viewer_rendering_every_step_gives_the_same_numbers(ma
         return viewer
 
     monkeypatch.setattr(Trainer, "_start_viewer", start)
-    viewed = train(uw3dgs_config(make_config(steps=12, timestamp="viewed", viewer=True, viewer_port=free_port())))
+    viewed = train(as_uw3dgs(make_config(steps=12, timestamp="viewed", viewer=True, viewer_port=free_port())))
     assert len(client.frames) == 12 and client.frames[-1].std() > 0
     a = load_checkpoint(latest_checkpoint(plain.run_dir), "cpu")
     b = load_checkpoint(latest_checkpoint(viewed.run_dir), "cpu")

@@ -33,6 +33,7 @@ from uw3dgs.engine.evaluator import load_trained
 from uw3dgs.medium.formation import form_underwater_image
 from uw3dgs.metrics.depth import COVERED
 from uw3dgs.render.rasterize import rasterize
+from uw3dgs.render.types import Splats
 
 
 def dehaze(outputs: dict, ranges: torch.Tensor, beta_d: torch.Tensor, beta_b: torch.Tensor, b_inf: torch.Tensor,
@@ -61,8 +62,8 @@ def in_front_share(model, camera, true_range: torch.Tensor, margin: float) -> to
     row = uv[:, 1].nan_to_num().floor().long().clamp(0, camera.height - 1)
     distance = (means - camera.center.to(means.dtype)).norm(dim=-1)
     front = ahead & (distance < (1 - margin) * true_range[row, col].to(means.dtype))
-    out = rasterize(means, quats, scales, opacities, front.to(means.dtype)[:, None].expand(-1, 3).contiguous(),
-                    camera, model.config.raster)
+    indicator = front.to(means.dtype)[:, None].expand(-1, 3).contiguous()
+    out = rasterize(Splats(means, quats, scales, opacities, indicator), camera, model.config.raster)
     return out.render[..., 0] / out.alpha.clamp_min(1e-8)
 
 

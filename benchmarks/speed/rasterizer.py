@@ -69,7 +69,7 @@ def water(size: int, device: str):
 
 
 def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str) -> dict:
-    from uw3dgs.render import RasterSettings, rasterize
+    from uw3dgs.render import RasterSettings, Splats, rasterize
     from uw3dgs.render.medium_rasterize import rasterize_medium
 
     medium = None
@@ -90,7 +90,7 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str
 
     def render(*gaussians):
         if medium is None:
-            return rasterize(*gaussians, camera, settings)
+            return rasterize(Splats(*gaussians), camera, settings)
         return rasterize_medium(*gaussians, medium, camera, settings, absgrad=mode != "fwd")
 
     def once() -> None:

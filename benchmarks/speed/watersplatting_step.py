@@ -53,7 +53,7 @@ def trainer_of(method: str, steps: int, output: Path) -> tuple[Trainer, list[int
 
 def parts(model) -> dict[str, Callable[[], None]]:
     """What a watersplatting step adds, as calls on `model`'s Gaussians and first training view."""
-    from uw3dgs.render import rasterize
+    from uw3dgs.render import Splats, rasterize
     from uw3dgs.render.medium_rasterize import rasterize_medium
     from uw3dgs.render.medium_types import PixelMedium
     from uw3dgs.render.sh import sh_basis
@@ -67,7 +67,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
     water = PixelMedium(*(t.clone().requires_grad_(True) for t in (water.color, water.sigma_bs, water.sigma_attn)))
 
     def composite_3dgs() -> None:
-        rasterize(*gaussians, camera, settings).render.sum().backward()
+        rasterize(Splats(*gaussians), camera, settings).render.sum().backward()
 
     def composite_medium() -> None:
         out = rasterize_medium(*gaussians, water, camera, settings, absgrad=True)
@@ -75,7 +75,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
 
     def forward_3dgs() -> None:
         with torch.no_grad():
-            rasterize(*gaussians, camera, settings)
+            rasterize(Splats(*gaussians), camera, settings)
 
     def forward_medium() -> None:
         with torch.no_grad():

@@ -40,7 +40,7 @@ from uw3dgs.methods.uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.metrics.medium import medium_eval_summary, restored_image_metrics
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
-from uw3dgs.render import masked_l1, rasterize
+from uw3dgs.render import Splats, masked_l1, rasterize
 from uw3dgs.render.sh import rgb_to_sh
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig, DensityControl
 from uw3dgs.utils.console import info
@@ -462,7 +462,7 @@ class UW3DGSModel(GaussianSplattingModel):
         enhanced = self.render(camera, keep=1.0 - m)["radiance"].clamp(0, 1)
         means, scales, quats, opacities = self.gaussians.activated()
         u = self.paup.filled()[0]
-        out = rasterize(means, quats, scales, opacities, u[:, None], camera, self.config.raster)
+        out = rasterize(Splats(means, quats, scales, opacities, u[:, None]), camera, self.config.raster)
         mean_u = out.render[..., 0] / out.alpha.clamp_min(COVERAGE_EPS)
         top = float(u.max().clamp_min(1e-12))
         covered = out.alpha > COVERAGE_EPS

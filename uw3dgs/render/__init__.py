@@ -2,6 +2,6 @@
 its loss in one pass)."""
 
 from uw3dgs.render.rasterize import BACKENDS, masked_l1, rasterize, register_backend
-from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.render.types import RasterOutput, RasterSettings, Splats
 
-__all__ = ["BACKENDS", "RasterOutput", "RasterSettings", "masked_l1", "rasterize", "register_backend"]
+__all__ = ["BACKENDS", "RasterOutput", "RasterSettings", "Splats", "masked_l1", "rasterize", "register_backend"]

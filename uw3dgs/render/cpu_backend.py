@@ -10,40 +10,28 @@ Where the kernels do not run (not a CPU float tensor, a tile larger than MAX_TIL
 from __future__ import annotations
 
 import torch
-from torch import Tensor
 
+from uw3dgs.cameras import Camera
 from uw3dgs.kernels.compositing import Composite, rasterizes, reused
 from uw3dgs.kernels.projection import project
 from uw3dgs.render.reference import rasterize_reference
-from uw3dgs.render.types import RasterOutput, RasterSettings, TileLists
+from uw3dgs.render.types import RasterOutput, RasterSettings, Splats, TileLists
 
 
-def rasterize_cpu(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    settings: RasterSettings,
-    projection: RasterOutput | None = None,
-) -> RasterOutput:
+def rasterize_cpu(splats: Splats, camera: Camera, settings: RasterSettings,
+                  projection: RasterOutput | None = None) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, compiled ('cpu' backend)."""
-    if not rasterizes(means, settings):
-        return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings,
-                                   projection)
-    dtype = means.dtype
-    opacities, features = (t.to(dtype).contiguous() for t in (opacities, features))
+    if not rasterizes(splats.means, settings):
+        return rasterize_reference(splats, camera, settings, projection)
+    dtype = splats.means.dtype
+    width, height = camera.width, camera.height
+    opacities, features = (t.to(dtype).contiguous() for t in (splats.opacities, splats.features))
     tile_lists = None
     if projection is not None:
         means2d, conics, depths, radii, tile_lists = reused(projection, dtype, settings)
     else:
-        means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
-        viewmat = viewmat.detach().to(dtype).contiguous()
-        K = K.detach().to(dtype).contiguous()
+        means, quats, scales = (t.to(dtype).contiguous() for t in (splats.means, splats.quats, splats.scales))
+        viewmat, K = (t.detach().to(dtype).contiguous() for t in (camera.viewmat, camera.K))
         # the projection reads the opacities for the radii only (no gradient): detached, a render whose Gaussians
         # are frozen but whose opacities carry one (PAUP's masked render) runs no projection backward
         means2d, conics, depths, radii = project(means, quats, scales, opacities.detach(), viewmat, K, width, height,

@@ -84,9 +84,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.render.projection import Projection, project_gaussians, reused_projection
+from uw3dgs.cameras import Camera
+from uw3dgs.render.projection import Projection, screen_gaussians
 from uw3dgs.render.reference import EXP_FLOOR, rasterize_reference
-from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.render.types import RasterOutput, RasterSettings, Splats
 from uw3dgs.utils.console import warn
 
 GSPLAT_VERSION = "1.5.3"
@@ -434,41 +435,27 @@ def _composite_fused(
     return image[0], alpha[0, ..., 0], weight_sum, pixel_count
 
 
-def rasterize_gsplat(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    settings: RasterSettings,
-    projection: RasterOutput | None = None,
-    kernels: Kernels | None = None,
-) -> RasterOutput:
+def rasterize_gsplat(splats: Splats, camera: Camera, settings: RasterSettings,
+                     projection: RasterOutput | None = None, kernels: Kernels | None = None) -> RasterOutput:
     """Same contract and numbers as `rasterize_reference`, with gsplat's kernels ('gsplat' backend).
 
     `kernels` replaces gsplat's CUDA functions (default: load them; CUDA tensors only). If they cannot be loaded,
     the reference renders the view (after one warning).
     """
     _check_settings(settings)
+    device = splats.means.device
     if kernels is None:
-        if means.device.type != "cuda":
+        if device.type != "cuda":
             raise ValueError(
-                f"the 'gsplat' backend runs on CUDA tensors, got {means.device.type}; use backend 'auto', 'cpu' or "
+                f"the 'gsplat' backend runs on CUDA tensors, got {device.type}; use backend 'auto', 'cpu' or "
                 "'torch' there"
             )
         kernels = load_kernels()
         if kernels is None:
-            return rasterize_reference(means, quats, scales, opacities, features, viewmat, K, width, height, settings,
-                                       projection)
+            return rasterize_reference(splats, camera, settings, projection)
 
-    if projection is not None:
-        proj = reused_projection(projection)
-    else:
-        proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
+    opacities, features, width, height = splats.opacities, splats.features, camera.width, camera.height
+    proj = screen_gaussians(splats, camera, settings, projection)
     tiles = _bin(proj, width, height, min(settings.tile_size, MAX_TILE), kernels)
     feats = torch.cat([features, proj.depths[:, None]], dim=1)  # depth composites like a feature
     dtype = torch.promote_types(torch.promote_types(proj.means2d.dtype, opacities.dtype), feats.dtype)
@@ -476,7 +463,7 @@ def rasterize_gsplat(
     fused = (
         tiles is not None and kernels.rasterize_to_pixels is not None and fused_path_applies(settings, dtype, channels)
     )
-    if not fused and means.device.type == "cuda":
+    if not fused and device.type == "cuda":
         _warn_exact_path(settings, dtype)
     if fused:
         image, alpha, weight_sum, pixel_count = _composite_fused(proj, opacities, feats, tiles, width, height, kernels)

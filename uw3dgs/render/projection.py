@@ -13,7 +13,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.cameras import Camera
+from uw3dgs.render.types import RasterOutput, RasterSettings, Splats
 
 FOV_CLAMP = 1.3
 """The Jacobian is evaluated at most this many half-fields-of-view off-axis, as in 3DGS."""
@@ -40,6 +41,16 @@ def reused_projection(raster: RasterOutput) -> Projection:
     radii = raster.radii
     return Projection(means2d=raster.means2d.detach(), conics=raster.conics.detach(), depths=raster.depths.detach(),
                       radii=radii, valid=radii > 0)
+
+
+def screen_gaussians(splats: Splats, camera: Camera, settings: RasterSettings,
+                     projection: RasterOutput | None = None) -> Projection:
+    """The splats' screen-space Gaussians in `camera`: `projection`'s (an earlier render's, see `rasterize`) where
+    given, else projected."""
+    if projection is not None:
+        return reused_projection(projection)
+    return project_gaussians(splats.means, splats.quats, splats.scales, splats.opacities, camera.viewmat, camera.K,
+                             camera.width, camera.height, settings)
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:

@@ -1,7 +1,7 @@
 """The one rasterization entry point, dispatching to a registry of backends.
 
-Every backend has the signature of `rasterize_reference` and must match it numerically (the tests
-compare against it). Backends register with the device types they run on and a priority; 'auto'
+Every backend is a `RasterFn` (splats, camera, settings, projection) and must match `rasterize_reference`
+numerically (the tests compare against it). Backends register with the device types they run on and a priority; 'auto'
 picks the highest-priority backend for the device of the Gaussians.
 """
 
@@ -17,7 +17,7 @@ from uw3dgs.kernels import compositing
 from uw3dgs.render import gsplat_backend
 from uw3dgs.render.cpu_backend import rasterize_cpu
 from uw3dgs.render.reference import rasterize_reference
-from uw3dgs.render.types import RasterFn, RasterOutput, RasterSettings
+from uw3dgs.render.types import RasterFn, RasterOutput, RasterSettings, Splats
 
 
 @dataclass(frozen=True)
@@ -30,8 +30,9 @@ class Backend:
     priority: int
     """'auto' prefers higher priorities."""
 
-    def __call__(self, *args, **kwargs) -> RasterOutput:
-        return self.fn(*args, **kwargs)
+    def __call__(self, splats: Splats, camera: Camera, settings: RasterSettings,
+                 projection: RasterOutput | None = None) -> RasterOutput:
+        return self.fn(splats, camera, settings, projection)
 
 
 BACKENDS: dict[str, Backend] = {}
@@ -61,21 +62,12 @@ def select_backend(name: str, device: torch.device) -> str:
     return name
 
 
-def rasterize(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    camera: Camera,
-    settings: RasterSettings = RasterSettings(),
-    projection: RasterOutput | None = None,
-) -> RasterOutput:
-    """Render one view of activated Gaussians (see `rasterize_reference` for shapes and conventions).
+def rasterize(splats: Splats, camera: Camera, settings: RasterSettings = RasterSettings(),
+              projection: RasterOutput | None = None) -> RasterOutput:
+    """Render one view of activated Gaussians (`Splats`; see `rasterize_reference` for shapes and conventions).
 
-    means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (exp'd), opacities [N] (sigmoid'd),
-    features [N, C]. Returns a [H, W, C] render and [H, W] alpha and depth, with no background:
-    compose with render + (1 - alpha[..., None]) * background.
+    Returns a [H, W, C] render and [H, W] alpha and depth, with no background: compose with
+    render + (1 - alpha[..., None]) * background.
 
     `projection`: an earlier render of the same Gaussians (means, quats, scales) from the same camera whose
     opacities were at least these, e.g. the full render before PAUP's masked one. Its screen-space Gaussians
@@ -83,12 +75,11 @@ def rasterize(
     the larger opacities, bound the footprints, and every pixel is still tested against `opacities`), but no
     gradient reaches means, quats or scales, so they must not require one.
     """
-    if projection is not None and any(t.requires_grad for t in (means, quats, scales)):
+    if projection is not None and any(t.requires_grad for t in (splats.means, splats.quats, splats.scales)):
         raise ValueError("a reused projection carries no gradient to means, quats or scales: render them detached "
                          "(frozen) or without `projection`")
-    backend = BACKENDS[select_backend(settings.backend, means.device)]
-    view = (camera.viewmat, camera.K, camera.width, camera.height)
-    return backend(means, quats, scales, opacities, features, *view, settings, projection)
+    backend = BACKENDS[select_backend(settings.backend, splats.means.device)]
+    return backend(splats, camera, settings, projection)
 
 
 def masked_l1(projection: RasterOutput, opacities: Tensor, features: Tensor, target: Tensor, camera: Camera,

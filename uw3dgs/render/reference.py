@@ -16,8 +16,9 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from uw3dgs.render.projection import Projection, project_gaussians, reused_projection
-from uw3dgs.render.types import RasterOutput, RasterSettings
+from uw3dgs.cameras import Camera
+from uw3dgs.render.projection import Projection, screen_gaussians
+from uw3dgs.render.types import RasterOutput, RasterSettings, Splats
 
 CHUNK_ELEMENTS = 1 << 20
 """Tiles x Gaussians-per-tile x pixels-per-tile per vectorised step: ~4 MB per float32 temporary."""
@@ -320,29 +321,16 @@ def _geometry_grads(ca: _ChunkAlpha, blend: _Blend, weighted: Tensor, settings: 
     return torch.stack(columns, dim=-1)
 
 
-def rasterize_reference(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    settings: RasterSettings,
-    projection: RasterOutput | None = None,
-) -> RasterOutput:
-    """Render [N, C] per-Gaussian features into one view ('torch' backend).
+def rasterize_reference(splats: Splats, camera: Camera, settings: RasterSettings,
+                        projection: RasterOutput | None = None) -> RasterOutput:
+    """Render `splats.features` [N, C] into one view of `camera` ('torch' backend).
 
-    Inputs are activated: scales exp'd, opacities sigmoid'd, quats (w, x, y, z) any norm.
+    The splats are activated: scales exp'd, opacities sigmoid'd, quats (w, x, y, z) any norm.
     Outputs are a [H, W, C] render and [H, W] alpha and depth, not composed over any background
     (callers add (1 - alpha[..., None]) * background). `projection`: see `uw3dgs.render.rasterize`.
     """
-    if projection is not None:
-        proj = reused_projection(projection)
-    else:
-        proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
+    opacities, features, width, height = splats.opacities, splats.features, camera.width, camera.height
+    proj = screen_gaussians(splats, camera, settings, projection)
     bins = bin_gaussians(proj, width, height, settings.tile_size)
     feats = torch.cat([features, proj.depths[:, None]], dim=1)  # depth composites like a feature
     image, weight_sum, pixel_count = _CompositeTiles.apply(

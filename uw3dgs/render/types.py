@@ -7,6 +7,7 @@ from typing import Protocol
 
 from torch import Tensor
 
+from uw3dgs.cameras import Camera
 from uw3dgs.options import CheckedConfig, OptionError, check_number
 
 
@@ -42,6 +43,21 @@ class RasterSettings(CheckedConfig):
         if self.alpha_min >= self.alpha_max:
             raise OptionError("alpha_max", f"must be larger than alpha_min ({self.alpha_min:g}), "
                                            f"got {self.alpha_max:g}")
+
+
+@dataclass(frozen=True)
+class Splats:
+    """The activated 3D Gaussians one render draws (gsplat's names), all of one dtype and device.
+
+    means [N, 3] world positions; quats [N, 4] rotations (w, x, y, z), normalised by the rasterizer; scales [N, 3]
+    standard deviations along the rotated axes (already exp'd); opacities [N] in [0, 1] (already sigmoid'd);
+    features [N, C] the channels composited per pixel (colours, or any per-Gaussian values)."""
+
+    means: Tensor
+    quats: Tensor
+    scales: Tensor
+    opacities: Tensor
+    features: Tensor
 
 
 @dataclass(frozen=True)
@@ -89,8 +105,9 @@ class RasterOutput:
 
 
 class RasterFn(Protocol):
-    """A rasterizer backend (`rasterize.register_backend`): `rasterize_reference`'s contract and numbers."""
+    """A rasterizer backend (`rasterize.register_backend`): `rasterize_reference`'s contract and numbers. It renders
+    `splats` from `camera` (any float dtype of the splats; the camera is read in it) with `settings`, reusing
+    `projection`'s screen-space Gaussians where given (see `rasterize`)."""
 
-    def __call__(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor,
-                 viewmat: Tensor, K: Tensor, width: int, height: int, settings: RasterSettings,
+    def __call__(self, splats: Splats, camera: Camera, settings: RasterSettings,
                  projection: RasterOutput | None = None) -> RasterOutput: ...
