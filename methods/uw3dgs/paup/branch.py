@@ -148,7 +148,7 @@ class PAUP(nn.Module):
         events, or every `prune_every` steps from `start`."""
         c = self.config
         if c.prune_schedule == "every":
-            return self._due_every(c.prune_every)
+            return step >= c.start and (step - c.start) % c.prune_every == 0
         return strategy.is_refine_step(step) or (c.prune_after_densification and strategy.is_late_prune_step(step))
 
     @property
