@@ -124,5 +124,6 @@ def test_methods_carry_their_schedules():
     schedules = {name: (spec.config.max_num_iterations, spec.config.model.densification.refine_stop)
                  for name, spec in METHODS.items() if hasattr(spec.config.model, "densification")}
     assert schedules["3dgs"] == (30000, None)  # 3DGS: densify until 15,000 = half of 30,000
-    for name in ("uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz"):
+    for name in ("uw3dgs", "uw3dgs-no-medium", "uw3dgs-no-lbeta", "uw3dgs-no-lz", "uw3dgs-paper",
+                 "uw3dgs-paper-no-paup", "uw3dgs-paper-no-medium", "uw3dgs-paper-no-lbeta", "uw3dgs-paper-no-lz"):
         assert schedules[name] == (40000, 15000), name  # DESIGN: until 15,000 of 40,000

@@ -149,15 +149,14 @@ class UW3DGSModel(GaussianSplattingModel):
                         info(f"medium report: {line}")
             if mc.init == "multiview":
                 estimate = self._combine_by_evidence(estimate, water, scene, train_indices)
-        learned = mc.learn_beta
-        self.medium.set_homogeneous(estimate.beta_d if learned else None, estimate.beta_b if learned else None,
-                                    estimate.b_inf)
-        if learned:  # with beta pinned at the prior, the estimate's de-hazed colours would not match it
-            # L_beta then keeps the field near what the data says, not near a constant that may be far off
-            # (docs/methods/uw3dgs.md: pulled toward beta_prior, red beta_D drifts away from the truth)
-            self.medium.set_prior(estimate.beta_d, estimate.beta_b)
-            with torch.no_grad():
-                self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
+        # with learn_beta False the betas are held at this start: the no-L_beta ablation keeps the same start
+        # (medium and de-hazed colours) as its full method and differs from it in L_beta alone
+        self.medium.set_homogeneous(estimate.beta_d, estimate.beta_b, estimate.b_inf)
+        # L_beta then keeps the field near what the data says, not near a constant that may be far off
+        # (docs/methods/uw3dgs.md: pulled toward beta_prior, red beta_D drifts away from the truth)
+        self.medium.set_prior(estimate.beta_d, estimate.beta_b)
+        with torch.no_grad():
+            self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
     def _combine_by_evidence(self, estimate: MediumEstimate, water: Tensor | None, scene: SceneData,
                              train_indices: list[int]) -> MediumEstimate:
@@ -239,10 +238,13 @@ class UW3DGSModel(GaussianSplattingModel):
         if not self.renders_medium:
             outputs["rgb"] = self.over_background(uri, outputs["alpha"])
             return outputs
+        radiance, alpha = uri, outputs["alpha"]
+        if "alpha_enhanced" in outputs:  # the paper's wiring: the UWI formed from I_UR^Enh
+            radiance, alpha = outputs["uri_enhanced"], outputs["alpha_enhanced"]
         with section("medium"):
             beta_d, beta_b = self.ray_betas(camera, outputs["range"])
-            formed = form_underwater_image(uri, outputs["alpha"], outputs["range"], beta_d, beta_b,
-                                           self.medium.b_inf, self.dataset_scale)
+            formed = form_underwater_image(radiance, alpha, outputs["range"], beta_d, beta_b, self.medium.b_inf,
+                                           self.dataset_scale)
         outputs.update(rgb=formed["uwi"], attenuation=formed["attenuation"], backscatter=formed["backscatter"],
                        beta_d=beta_d, beta_b=beta_b)
         return outputs
@@ -286,15 +288,24 @@ class UW3DGSModel(GaussianSplattingModel):
         return outputs
 
     def add_enhanced_render(self, outputs: dict[str, Any], camera: Camera) -> None:
-        """Add to `render`'s `outputs` of `camera` 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered frozen
-        with their opacities times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i;
-        `--model.paup.mask`), so L_PAPSL trains the scorer alone, and 'uri_enhanced_l1', L1(I_UR, I_UR^Enh)
-        (`render_masked`); and 'pus', 'floater_probability' [N]."""
+        """Add to `render`'s `outputs` of `camera` 'uri_enhanced' [H, W, 3] I_UR^Enh, the Gaussians rendered with
+        their opacities times the keep mask s_i (a relaxed draw of Bernoulli(1 - m_i), or 1 - m_i;
+        `--model.paup.mask`), and 'uri_enhanced_l1', L1(I_UR, I_UR^Enh); and 'pus', 'floater_probability' [N].
+        By default I_UR^Enh is frozen, so L_PAPSL trains the scorer alone (`render_masked`); with
+        `--model.paup.uwi-from-enhanced` (the paper's wiring) it is rendered with gradients to the Gaussians and
+        its coverage added as 'alpha_enhanced' [H, W], from which `get_outputs` forms the UWI."""
         with section("PAUP: scores + masked render"):
             pus, m = self.paup.scores()
             c = self.config.paup
             keep = 1.0 - m if c.mask == "expected" else relaxed_keep_mask(1.0 - m, c.mask_temperature)
-            outputs["uri_enhanced"], outputs["uri_enhanced_l1"] = self.render_masked(camera, keep, outputs)
+            if c.uwi_from_enhanced:
+                enhanced = self.render(camera, keep=keep, colors=outputs["colors"])
+                # the image loss trains this render: density control reads its screen-space gradient
+                outputs.update(uri_enhanced=enhanced["radiance"], alpha_enhanced=enhanced["alpha"],
+                               means2d=enhanced["means2d"],
+                               uri_enhanced_l1=(outputs["radiance"] - enhanced["radiance"]).abs().mean())
+            else:
+                outputs["uri_enhanced"], outputs["uri_enhanced_l1"] = self.render_masked(camera, keep, outputs)
         outputs.update(pus=pus, floater_probability=m)
 
     def render_masked(self, camera: Camera, keep: Tensor, full: dict[str, Any]) -> tuple[Tensor, Tensor]:
@@ -485,21 +496,56 @@ def uw3dgs_optimizers(paup: bool) -> dict[str, ParamGroupConfig]:
     return {**groups, "paup": ParamGroupConfig(0.001)} if paup else groups
 
 
-def _method(name: str, description: str, **model_overrides: Any) -> MethodSpec:
-    # DESIGN's schedule: densify until 15,000 of the 40,000 steps (3DGS's absolute value, not its half)
-    base = UW3DGSModelConfig(densification=DensificationConfig(refine_stop=15000))
-    model = dataclasses.replace(base, **model_overrides)
+def _method(name: str, description: str, model: UW3DGSModelConfig) -> MethodSpec:
     config = TrainConfig(method_name=name, model=model, optimizers=uw3dgs_optimizers(model.use_paup),
                          max_num_iterations=40000)
     return MethodSpec(name, description, config)
 
 
+def preset(parent: MethodSpec, name: str, description: str, **model_overrides: Any) -> MethodSpec:
+    """`parent` with its model's fields `model_overrides` replaced, and the PAUP optimizer group dropped where the
+    preset has no PAUP branch: every other setting is the parent's."""
+    model = dataclasses.replace(parent.config.model, **model_overrides)
+    optimizers = {group: value for group, value in parent.config.optimizers.items()
+                  if model.use_paup or group != "paup"}
+    return MethodSpec(name, description, dataclasses.replace(parent.config, method_name=name, model=model,
+                                                             optimizers=optimizers))
+
+
+ABLATIONS: dict[str, tuple[str, Any]] = {
+    "no-paup": ("no PAUP branch, no L_PAPSL (U = 0, PUS = 1)", lambda model: {"use_paup": False}),
+    "no-medium": ("plain 3DGS rendering (no underwater module), so no L_beta, no L_z",
+                  lambda model: {"use_medium": False, "beta_loss_weight": 0.0, "depth_loss_weight": 0.0}),
+    "no-lbeta": ("no L_beta: beta_D, beta_B held at their start (B_inf still learned)",
+                 lambda model: {"medium": dataclasses.replace(model.medium, learn_beta=False),
+                                "beta_loss_weight": 0.0}),
+    "no-lz": ("no L_z, depth without the (1 - U) weight",
+              lambda model: {"depth_loss_weight": 0.0, "uncertainty_weighted_depth": False}),
+}
+"""The paper's Table 2: ablation suffix -> (what it removes, the model fields it sets given the parent's model).
+Each differs from its parent in exactly these fields (and the PAUP optimizer group for no-paup)."""
+
+
+def ablation(parent: MethodSpec, suffix: str) -> MethodSpec:
+    """`parent`'s ablation `suffix` (a key of ABLATIONS), named PARENT-SUFFIX."""
+    removes, overrides = ABLATIONS[suffix]
+    return preset(parent, f"{parent.name}-{suffix}", f"Ablation of {parent.name}: {removes}.",
+                  **overrides(parent.config.model))
+
+
+# DESIGN's schedule: densify until 15,000 of the 40,000 steps (3DGS's absolute value, not its half)
 method = _method("uw3dgs", "UW-3DGS: 3DGS + learnable underwater image formation (VM-grid beta_D, beta_B, B_inf), "
-                 "Physics-Aware Uncertainty Pruning, L_beta, L_z.")
-no_paup = _method("uw3dgs-no-paup", "Ablation: no PAUP branch, no L_PAPSL (U = 0, PUS = 1).", use_paup=False)
-no_medium = _method("uw3dgs-no-medium", "Ablation: plain 3DGS rendering, no L_beta, no L_z.",
-                    use_medium=False, beta_loss_weight=0.0, depth_loss_weight=0.0)
-no_lbeta = _method("uw3dgs-no-lbeta", "Ablation: beta fixed at beta_prior (B_inf still learned), no L_beta.",
-                   medium=MediumGridConfig(learn_beta=False), beta_loss_weight=0.0)
-no_lz = _method("uw3dgs-no-lz", "Ablation: no L_z, depth without the (1 - U) weight.", depth_loss_weight=0.0,
-                uncertainty_weighted_depth=False)
+                 "Physics-Aware Uncertainty Pruning, L_beta, L_z.",
+                 UW3DGSModelConfig(densification=DensificationConfig(refine_stop=15000)))
+no_paup, no_medium, no_lbeta, no_lz = (ablation(method, suffix) for suffix in ABLATIONS)
+
+PAPER_PAUP: dict[str, Any] = {"normalize_scores": False, "monotone_scorer": False, "attenuation_weight": 1.0,
+                              "uwi_from_enhanced": True, "prune_schedule": "every", "prune_every": 1,
+                              "prune_min_probability": 0.0}
+"""The PAUP knobs `uw3dgs-paper` sets to the paper's text (docs/methods/uw3dgs.md, "The paper as written")."""
+
+paper = preset(method, "uw3dgs-paper", "UW-3DGS as the paper writes it: the medium from beta_prior, raw PUS, "
+               "unconstrained phi, P with its attenuation term, the UWI from I_UR^Enh, pruning at the 0.95-quantile "
+               "of m every step.", medium=dataclasses.replace(method.config.model.medium, init="prior"),
+               paup=dataclasses.replace(method.config.model.paup, **PAPER_PAUP))
+paper_no_paup, paper_no_medium, paper_no_lbeta, paper_no_lz = (ablation(paper, suffix) for suffix in ABLATIONS)

@@ -2,9 +2,9 @@
 `strategy/`). A strategy takes the Gaussians, their optimizers and its own state, and knows nothing of the
 trainer; a method wires it in with a training callback (`DensityControl`)."""
 
-from uw3dgs.strategy.base import ExtraPruning, GaussianParameters, OptimizerSurgery
+from uw3dgs.strategy.base import DensityEvents, ExtraPruning, GaussianParameters, OptimizerSurgery
 from uw3dgs.strategy.callback import DensityControl
 from uw3dgs.strategy.default import DefaultStrategy, DensificationConfig
 
-__all__ = ["DefaultStrategy", "DensificationConfig", "DensityControl", "ExtraPruning", "GaussianParameters",
-           "OptimizerSurgery"]
+__all__ = ["DefaultStrategy", "DensificationConfig", "DensityControl", "DensityEvents", "ExtraPruning",
+           "GaussianParameters", "OptimizerSurgery"]

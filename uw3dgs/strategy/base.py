@@ -33,12 +33,24 @@ class OptimizerSurgery(Protocol):
         ...
 
 
-class ExtraPruning(Protocol):
-    """A second pruning criterion run inside density control's events (PAUP), with per-Gaussian state that must
-    follow the Gaussians when they are cloned, split or removed."""
+class DensityEvents(Protocol):
+    """When a density-control strategy densifies, and when after that it may still prune (`DefaultStrategy`)."""
 
-    prunes_after_densification: bool
-    """Whether it also prunes on the densification cadence after densification stops (prune-only events)."""
+    def is_refine_step(self, step: int) -> bool:
+        ...
+
+    def is_late_prune_step(self, step: int) -> bool:
+        ...
+
+
+class ExtraPruning(Protocol):
+    """A second pruning criterion run by density control (PAUP), at its events or on its own cadence, with
+    per-Gaussian state that must follow the Gaussians when they are cloned, split or removed."""
+
+    def prunes_at(self, step: int, strategy: DensityEvents) -> bool:
+        """Whether it prunes at `step` (then `select` is called): at `strategy`'s events, or on its own cadence
+        (outside an event the Gaussians it selects are pruned alone)."""
+        ...
 
     def select(self, step: int) -> Tensor | None:
         """[N] bool: the Gaussians to remove at this event, or None for none."""

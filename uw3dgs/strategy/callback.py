@@ -35,9 +35,7 @@ class DensityControl(TrainingCallback):
     @section("densification")
     def after_step(self, step: int, batch: Batch, outputs: dict[str, Any]) -> None:
         extra, strategy = self.extra_pruning, self.strategy
-        event = extra is not None and (strategy.is_refine_step(step) or (
-            extra.prunes_after_densification and strategy.is_late_prune_step(step)))
-        remove = extra.select(step) if event else None
+        remove = extra.select(step) if extra is not None and extra.prunes_at(step, strategy) else None
         origin = strategy.step_post_optimizer(self.gaussians, self.optimizers, self.state, step, remove)
         if extra is not None and origin is not None:
             extra.reindex(origin)

@@ -13,6 +13,7 @@ from torch import Tensor, nn
 from uw3dgs.kernels.policy import Kernels
 from uw3dgs.methods.uw3dgs.paup.scorer import FloaterScorer
 from uw3dgs.options import CheckedConfig, check_number
+from uw3dgs.strategy.base import DensityEvents
 
 PER_GAUSSIAN_BUFFERS = ("uncertainty", "implausibility", "raw_uncertainty", "measured")
 
@@ -67,13 +68,25 @@ class PAUPConfig(CheckedConfig):
     mlp_penalty: float = 0.001
     """lambda_w: weight decay of phi."""
     prune_quantile: float = 0.95
-    """At a densification event, Gaussians whose m is above this quantile of m (so at most 1 - q of them) and
-    above prune_min_probability are removed."""
+    """tau, the quantile of m at and above which a pruning removes measured Gaussians (so at most 1 - q of them),
+    if their m is also above prune_min_probability. The paper: 0.95 in its method section (the reading here),
+    "the median" (0.5) in its implementation details."""
     prune_min_probability: float = 0.5
-    """m a Gaussian must exceed to be pruned."""
+    """m a Gaussian must exceed to be pruned (this project's floor; the paper has none: 0)."""
+    prune_schedule: Literal["densification", "every"] = "densification"
+    """When PAUP hard-prunes: "densification" (this project's reading) at density-control events, while
+    densification runs (and after it with prune_after_densification); "every" (the paper's tau, "updated per
+    iteration") every prune_every steps from `start` to the end of the run, whatever density control does."""
+    prune_every: int = 1
+    """Steps between prunings with prune_schedule "every" (1: every step, the paper)."""
     prune_after_densification: bool = False
-    """Go on pruning after densification stops (at refine-stop), on its cadence (every refine-every steps),
-    removing floaters only; False: prune at densification events only (the paper: "with densification")."""
+    """With prune_schedule "densification": go on pruning after densification stops (at refine-stop), on its
+    cadence (every refine-every steps), removing floaters only; False: prune at densification events only."""
+    uwi_from_enhanced: bool = False
+    """True (the paper's wiring): I_UR^Enh is rendered with gradients to the Gaussians, the training UWI (so the
+    image loss) is formed from it, and L_PAPSL's L1 term reaches the Gaussians through both I_UR and I_UR^Enh.
+    False: the UWI is formed from the full I_UR, as evaluation renders it, and I_UR^Enh is a frozen render whose
+    L1 trains the scorer alone (docs/methods/uw3dgs.md: the paper's wiring lets the URI collapse)."""
 
     def check_options(self) -> None:
         check_number(self, "start", ge=0, integer=True)
@@ -93,6 +106,7 @@ class PAUPConfig(CheckedConfig):
         check_number(self, "mlp_penalty", ge=0)
         check_number(self, "prune_quantile", gt=0, lt=1)
         check_number(self, "prune_min_probability", ge=0, lt=1)
+        check_number(self, "prune_every", ge=1, integer=True)
 
 
 class PAUP(nn.Module):
@@ -129,9 +143,13 @@ class PAUP(nn.Module):
     def set_step(self, step: int) -> None:
         self.step = step
 
-    @property
-    def prunes_after_densification(self) -> bool:
-        return self.config.prune_after_densification
+    def prunes_at(self, step: int, strategy: DensityEvents) -> bool:
+        """Whether PAUP hard-prunes at `step` (`select`), on `prune_schedule`: at `strategy`'s density-control
+        events, or every `prune_every` steps from `start`."""
+        c = self.config
+        if c.prune_schedule == "every":
+            return step >= c.start and (step - c.start) % c.prune_every == 0
+        return strategy.is_refine_step(step) or (c.prune_after_densification and strategy.is_late_prune_step(step))
 
     @property
     def active(self) -> bool:
