@@ -31,6 +31,7 @@ from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render.medium_rasterize import rasterize_medium
 from uw3dgs.render.medium_types import PixelMedium
+from uw3dgs.render.types import Splats
 from uw3dgs.strategy import DefaultStrategy, DensificationConfig, DensityControl
 from uw3dgs.utils.profiling import section
 from uw3dgs.utils.visualize import depth_to_image
@@ -123,8 +124,8 @@ class WaterSplattingModel(GaussianSplattingModel):
         means, scales, quats, opacities = self.gaussians.activated()
         colors = self.gaussians.colors(camera.center)
         with section("rasterize"):
-            out = rasterize_medium(means, quats, scales, opacities, colors, medium, camera, self.config.raster,
-                                   absgrad=absgrad)
+            out = rasterize_medium(Splats(means, quats, scales, opacities, colors), medium, camera,
+                                   self.config.raster, absgrad=absgrad)
         if absgrad and out.means2d.requires_grad:
             out.means2d.retain_grad()
         covered = out.alpha > COVERAGE_EPS

@@ -12,9 +12,10 @@ import torch
 from test_rasterizer import F64, Scene, random_scene
 from torch import Tensor
 
+from uw3dgs.cameras import Camera
 from uw3dgs.kernels import build as kernel_build
 from uw3dgs.kernels.medium_compositing import rasterize_medium_cpu
-from uw3dgs.render import RasterSettings, rasterize
+from uw3dgs.render import RasterSettings, Splats, rasterize
 from uw3dgs.render.medium_rasterize import rasterize_medium
 from uw3dgs.render.medium_reference import _CompositeMediumTiles, rasterize_medium_reference
 from uw3dgs.render.medium_types import PixelMedium
@@ -96,8 +97,7 @@ def brute_force_medium(scene: Scene, medium: PixelMedium, settings: RasterSettin
 
 def render_reference(scene: Scene, medium: PixelMedium, settings: RasterSettings, **kwargs):
     cam = scene.camera
-    return rasterize_medium_reference(*scene.inputs(), medium, cam.viewmat, cam.K, cam.width, cam.height, settings,
-                                      **kwargs)
+    return rasterize_medium_reference(Splats(*scene.inputs()), medium, cam, settings, **kwargs)
 
 
 def _scene_and_medium(seed: int, n: int, width: int = 40, height: int = 30) -> tuple[Scene, PixelMedium]:
@@ -240,8 +240,8 @@ def _render_with_grads(fn, scene: Scene, medium: PixelMedium, dtype: torch.dtype
     leaves = [t.to(dtype).clone().requires_grad_(True) for t in scene.inputs()]
     water = [t.to(dtype).clone().requires_grad_(True) for t in (medium.color, medium.sigma_bs, medium.sigma_attn)]
     cam = scene.camera
-    out = fn(*leaves, PixelMedium(*water), cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height, settings,
-             absgrad=True)
+    cam = Camera(cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height)
+    out = fn(Splats(*leaves), PixelMedium(*water), cam, settings, absgrad=True)
     out.means2d.retain_grad()
     gen = torch.Generator().manual_seed(LOSS_SEED)
     sum((t * torch.randn(t.shape, generator=gen, dtype=F64).to(dtype)).sum()
@@ -282,10 +282,10 @@ def test_compiled_matches_reference(seed: int, n: int, settings: RasterSettings,
     # without a gradient no trace is recorded: the same images, bit for bit
     cam = scene.camera
     with torch.no_grad():
-        plain = rasterize_medium_cpu(*(t.to(dtype) for t in scene.inputs()),
+        plain = rasterize_medium_cpu(Splats(*(t.to(dtype) for t in scene.inputs())),
                                      PixelMedium(*(t.to(dtype) for t in (medium.color, medium.sigma_bs,
                                                                           medium.sigma_attn))),
-                                     cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height, settings)
+                                     Camera(cam.viewmat.to(dtype), cam.K.to(dtype), cam.width, cam.height), settings)
     for name in ("object", "medium", "render", "alpha", "depth", "weight_sum", "pixel_count"):
         assert torch.equal(getattr(plain, name), getattr(out, name).detach()), name
 
@@ -339,10 +339,10 @@ def test_dispatch_picks_compiled_on_cpu_and_refuses_gsplat(monkeypatch: pytest.M
     monkeypatch.setattr(medium_cpu, "rasterize_medium_cpu", lambda *a, **k: calls.append(1) or compiled(*a, **k))
     scene, medium = _scene_and_medium(0, 60)
     cam = scene.camera
-    rasterize_medium(*scene.inputs(), medium, cam, RasterSettings())
-    rasterize_medium(*scene.inputs(), medium, cam, RasterSettings(backend="cpu"))
+    rasterize_medium(Splats(*scene.inputs()), medium, cam, RasterSettings())
+    rasterize_medium(Splats(*scene.inputs()), medium, cam, RasterSettings(backend="cpu"))
     assert len(calls) == 2
-    rasterize_medium(*scene.inputs(), medium, cam, RasterSettings(backend="torch"))
+    rasterize_medium(Splats(*scene.inputs()), medium, cam, RasterSettings(backend="torch"))
     assert len(calls) == 2
     with pytest.raises(ValueError, match="gsplat"):
-        rasterize_medium(*scene.inputs(), medium, cam, RasterSettings(backend="gsplat"))
+        rasterize_medium(Splats(*scene.inputs()), medium, cam, RasterSettings(backend="gsplat"))

@@ -91,7 +91,7 @@ def worker(backend: str, n: int, size: int, mode: str, repeats: int, device: str
     def render(*gaussians):
         if medium is None:
             return rasterize(Splats(*gaussians), camera, settings)
-        return rasterize_medium(*gaussians, medium, camera, settings, absgrad=mode != "fwd")
+        return rasterize_medium(Splats(*gaussians), medium, camera, settings, absgrad=mode != "fwd")
 
     def once() -> None:
         if mode == "fwd":

@@ -70,7 +70,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
         rasterize(Splats(*gaussians), camera, settings).render.sum().backward()
 
     def composite_medium() -> None:
-        out = rasterize_medium(*gaussians, water, camera, settings, absgrad=True)
+        out = rasterize_medium(Splats(*gaussians), water, camera, settings, absgrad=True)
         (out.underwater.sum() + out.render.sum()).backward()
 
     def forward_3dgs() -> None:
@@ -79,7 +79,7 @@ def parts(model) -> dict[str, Callable[[], None]]:
 
     def forward_medium() -> None:
         with torch.no_grad():
-            rasterize_medium(*gaussians, water, camera, settings)
+            rasterize_medium(Splats(*gaussians), water, camera, settings)
 
     weights = torch.rand(camera.height, camera.width, 9, generator=torch.Generator().manual_seed(0))
 

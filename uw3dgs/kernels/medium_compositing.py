@@ -10,11 +10,12 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from uw3dgs.cameras import Camera
 from uw3dgs.kernels.build import extension, runs_on
 from uw3dgs.kernels.compositing import MAX_TILE
 from uw3dgs.kernels.projection import project
 from uw3dgs.render.medium_types import MediumRasterOutput, PixelMedium
-from uw3dgs.render.types import RasterSettings
+from uw3dgs.render.types import RasterSettings, Splats
 
 
 def takes(means: Tensor, settings: RasterSettings) -> bool:
@@ -55,15 +56,15 @@ class _CompositeMedium(torch.autograd.Function):
         return g_means2d, g_conics, g_opacities, g_colors, None, None, g_medium, *[None] * 4
 
 
-def rasterize_medium_cpu(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                         medium: PixelMedium, viewmat: Tensor, K: Tensor, width: int, height: int,
-                         settings: RasterSettings, absgrad: bool = False) -> MediumRasterOutput:
+def rasterize_medium_cpu(splats: Splats, medium: PixelMedium, camera: Camera, settings: RasterSettings,
+                         absgrad: bool = False) -> MediumRasterOutput:
     """`rasterize_medium_reference`'s contract and numbers, compiled (callers check `takes` first)."""
+    width, height = camera.width, camera.height
     medium.check(width, height)
-    dtype = means.dtype
-    means, quats, scales = (t.to(dtype).contiguous() for t in (means, quats, scales))
-    opacities, colors = (t.to(dtype).contiguous() for t in (opacities, colors))
-    viewmat, K = (t.detach().to(dtype).contiguous() for t in (viewmat, K))
+    dtype = splats.means.dtype
+    means, quats, scales = (t.to(dtype).contiguous() for t in (splats.means, splats.quats, splats.scales))
+    opacities, colors = (t.to(dtype).contiguous() for t in (splats.opacities, splats.features))
+    viewmat, K = (t.detach().to(dtype).contiguous() for t in (camera.viewmat, camera.K))
     means2d, conics, depths, radii = project(means, quats, scales, opacities.detach(), viewmat, K, width, height,
                                              settings)
     abs_buffer = means.new_zeros(len(means), 2) if absgrad else None

@@ -9,13 +9,11 @@ from __future__ import annotations
 
 import warnings
 
-from torch import Tensor
-
 from uw3dgs.cameras import Camera
 from uw3dgs.kernels import medium_compositing as medium_cpu
 from uw3dgs.render.medium_reference import rasterize_medium_reference
 from uw3dgs.render.medium_types import MediumRasterOutput, PixelMedium
-from uw3dgs.render.types import RasterSettings
+from uw3dgs.render.types import RasterSettings, Splats
 
 _warned: set[str] = set()
 
@@ -31,11 +29,10 @@ def warn_reference_on(device_type: str) -> None:
                   "correct but much slower than a 3DGS render", RuntimeWarning, stacklevel=3)
 
 
-def rasterize_medium(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor,
-                     medium: PixelMedium, camera: Camera, settings: RasterSettings = RasterSettings(),
+def rasterize_medium(splats: Splats, medium: PixelMedium, camera: Camera, settings: RasterSettings = RasterSettings(),
                      absgrad: bool = False) -> MediumRasterOutput:
-    """Render one view of activated Gaussians (means [N, 3], quats [N, 4], scales [N, 3], opacities [N], colours
-    [N, 3]) with the per-pixel water `medium` ([H, W, 3] each); see `MediumRasterOutput` for the outputs.
+    """Render one view of activated Gaussians (`splats`, features = colours [N, 3]) with the per-pixel water `medium`
+    ([H, W, 3] each); see `MediumRasterOutput` for the outputs.
 
     `settings.backend`: 'auto' takes the compiled CPU kernel where it runs (CPU float tensors, the extension built),
     else the reference; 'torch' the reference; 'cpu' the compiled kernel (an error where it does not run); 'gsplat'
@@ -47,13 +44,12 @@ def rasterize_medium(means: Tensor, quats: Tensor, scales: Tensor, opacities: Te
                          "use auto (the compiled CPU kernel, else the PyTorch reference) or torch")
     if backend not in ("auto", "torch", "cpu"):
         raise ValueError(f"--model.raster.backend {backend}: the medium compositor runs on auto, torch or cpu")
-    usable = backend != "torch" and medium_cpu.takes(means, settings)
+    usable = backend != "torch" and medium_cpu.takes(splats.means, settings)
     if backend == "cpu" and not usable:
         raise ValueError("--model.raster.backend cpu: the compiled medium compositor does not run here (CPU float32 "
                          "or float64 tensors and a built extension needed); use auto or torch")
-    view = (camera.viewmat, camera.K, camera.width, camera.height, settings)
     if backend != "torch" and usable:
-        return medium_cpu.rasterize_medium_cpu(means, quats, scales, opacities, colors, medium, *view, absgrad=absgrad)
-    if means.device.type != "cpu":
-        warn_reference_on(means.device.type)
-    return rasterize_medium_reference(means, quats, scales, opacities, colors, medium, *view, absgrad=absgrad)
+        return medium_cpu.rasterize_medium_cpu(splats, medium, camera, settings, absgrad=absgrad)
+    if splats.means.device.type != "cpu":
+        warn_reference_on(splats.means.device.type)
+    return rasterize_medium_reference(splats, medium, camera, settings, absgrad=absgrad)

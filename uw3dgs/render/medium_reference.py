@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from uw3dgs.cameras import Camera
 from uw3dgs.render.medium_types import MediumRasterOutput, PixelMedium
 from uw3dgs.render.projection import project_gaussians
 from uw3dgs.render.reference import (
@@ -26,7 +27,7 @@ from uw3dgs.render.reference import (
     _tiles_to_image,
     bin_gaussians,
 )
-from uw3dgs.render.types import RasterSettings
+from uw3dgs.render.types import RasterSettings, Splats
 
 COLOR, DEPTH, ONE = slice(_FEATS, _FEATS + 3), _FEATS + 3, _FEATS + 4
 """Columns of the packed table: the Gaussians' RGB, their depth, the constant 1 (`reference._pack`)."""
@@ -126,33 +127,24 @@ class _CompositeMediumTiles(torch.autograd.Function):
                 *[None] * 5)
 
 
-def rasterize_medium_reference(
-    means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
-    opacities: Tensor,
-    colors: Tensor,
-    medium: PixelMedium,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    settings: RasterSettings,
-    absgrad: bool = False,
-) -> MediumRasterOutput:
-    """Render [N, 3] colours into one view with the water composited between the Gaussians ('torch' backend).
+def rasterize_medium_reference(splats: Splats, medium: PixelMedium, camera: Camera, settings: RasterSettings,
+                               absgrad: bool = False) -> MediumRasterOutput:
+    """Render `splats.features` (colours [N, 3]) into one view of `camera` with the water composited between the
+    Gaussians ('torch' backend).
 
-    Inputs are activated as for `rasterize_reference`; `medium` holds [H, W, 3] per-pixel water parameters. Returns
+    Splats are activated as for `rasterize_reference`; `medium` holds [H, W, 3] per-pixel water parameters. Returns
     the restored image as `render`, `object` and `medium` (see `MediumRasterOutput`), alpha and depth = sum_i w_i z_i
     (no gradient to z). `absgrad`: also fill `absgrad` [N, 2] in the backward.
     """
+    width, height = camera.width, camera.height
     medium.check(width, height)
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, settings)
+    proj = project_gaussians(splats.means, splats.quats, splats.scales, splats.opacities, camera.viewmat, camera.K,
+                             width, height, settings)
     bins = bin_gaussians(proj, width, height, settings.tile_size)
-    abs_buffer = means.new_zeros(len(means), 2) if absgrad else None
+    abs_buffer = splats.means.new_zeros(len(splats.means), 2) if absgrad else None
     restored, obj, water, weight_sum, pixel_count = _CompositeMediumTiles.apply(
-        proj.means2d, proj.conics, opacities, colors, proj.depths.detach(), medium.packed(), bins, width, height,
-        settings, abs_buffer,
+        proj.means2d, proj.conics, splats.opacities, splats.features, proj.depths.detach(), medium.packed(), bins,
+        width, height, settings, abs_buffer,
     )
     return MediumRasterOutput(
         render=restored[..., 0:3],

@@ -65,7 +65,7 @@ class TileLists:
     """The compiled backend's binning of one render at `tile_size`: `tensors` = (tile starts [tiles + 1] int64,
     Gaussian of each pair sorted by tile then depth [pairs] int32, each sorted pair's slot [pairs] int64, each
     Gaussian's first slot [N + 1] int64). A render of the same view and Gaussians with opacities no higher composites
-    over them as over its own (render/csrc/cpu_rasterizer.cpp, composite_forward)."""
+    over them as over its own (uw3dgs/kernels/compositing.cpp, composite_forward)."""
 
     tile_size: int
     tensors: tuple[Tensor, ...]
