@@ -189,19 +189,12 @@ def test_sh_shading_needs_27_appearance_features():
 
 @pytest.mark.parametrize("parent", ["tensorf", "seathru-nerf"])
 def test_cpu_preset_differs_from_its_parent_only_in_the_cpu_recipe(parent):
-    from dataclasses import asdict
+    from test_ablations import differing_fields
 
     from uw3dgs.registry import METHODS
 
-    def flat(d, prefix=""):
-        out = {}
-        for k, v in d.items():
-            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
-        return out
-
-    base, cpu = (flat(asdict(METHODS[name].config)) for name in (parent, f"{parent}-cpu"))
-    differ = {k for k in base.keys() | cpu.keys() if base.get(k) != cpu.get(k)}
-    assert differ == {"method_name", "max_num_iterations", "model.radiance.shading", "model.batch_size",
+    differ = differing_fields(METHODS[parent].config, METHODS[f"{parent}-cpu"].config)  # the method's name aside
+    assert differ == {"max_num_iterations", "model.radiance.shading", "model.batch_size",
                       "model.voxels_init", "model.voxels_final", "model.upsample_steps", "model.alpha_mask_steps",
                       "model.step_ratio", "model.max_samples"}
 
