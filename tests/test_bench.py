@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import QUICK_REPORT_ARGS
 
-from uw3dgs.bench.cell import LOG_NAME, State, cell_state
+from uw3dgs.bench.cell import LOG_NAME, State, cell_state, config_differences
 from uw3dgs.bench.executors import local_threads
 from uw3dgs.bench.grid import GridError, load_grid
 from uw3dgs.engine.checkpoint import list_checkpoints
@@ -256,3 +256,12 @@ method_args: {tensorf: [--max-num-iterations, 250]}
     with pytest.raises(GridError, match="method_args"):
         load_grid(write(tmp_path / "bad.yaml", "methods: [3dgs]\ndatasets: {s: {}}\nseeds: [0]\n"
                                                "method_args: {tensorf: [--seed, 1]}\n"))
+
+
+def test_options_removed_since_a_run_was_saved_are_no_conflict():
+    """A run saved while fields were chosen by a name option holds `model.medium_field`; the grid's config no longer
+    has it (the field's `_type` says the same): not a difference. Any other option absent from the grid still is."""
+    saved = {"model": {"medium_field": "medium-grid", "medium": {"_type": "G", "resolution": 64}}}
+    assert config_differences(saved, {"model": {"medium": {"_type": "G", "resolution": 64}}}) == []
+    assert config_differences({"model": {**saved["model"], "typo": 1}}, {"model": saved["model"]}) == \
+        ["model.typo (1 in the run, '<absent>' in the grid)"]

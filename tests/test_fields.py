@@ -1,4 +1,4 @@
-"""Fields chosen by registry name: the homogeneous medium, `--model.medium-field`, and field plugins."""
+"""Fields chosen by subcommand (their registry names): the homogeneous medium, the slot, and field plugins."""
 
 from __future__ import annotations
 
@@ -54,38 +54,53 @@ def test_homogeneous_medium_regularizer_and_gradients_against_float64():
         torch.testing.assert_close(raw.grad, analytic, rtol=1e-12, atol=1e-12)
 
 
-def test_medium_field_option_picks_the_registered_field_and_round_trips():
-    config = parse_config(["uw3dgs", "--model.medium-field", "medium-homogeneous", "--model.medium.b-inf-init",
-                           "0.1", "0.2", "0.3"])
-    assert config.model.medium_field == "medium-homogeneous"
+def test_medium_subcommand_picks_the_registered_field_and_round_trips():
+    config = parse_config(["uw3dgs", "medium-homogeneous", "--model.medium.b-inf-init", "0.1", "0.2", "0.3"])
     assert config.model.medium == HomogeneousMediumConfig(b_inf_init=(0.1, 0.2, 0.3))
-    assert config_from_dict(config_to_dict(config)) == config  # config.yml keeps the choice and its knobs
+    assert config_from_dict(config_to_dict(config)) == config  # config.yml keeps the choice (its _type) and knobs
     assert type(parse_config(["uw3dgs"]).model.medium) is MediumGridConfig  # the paper's grid by default
-    # a renamed field with the old knobs (dataclasses.replace) gets the new field's defaults, never a mix
-    switched = dataclasses.replace(METHODS["uw3dgs"].config.model, medium_field="medium-homogeneous")
-    assert switched.medium == HomogeneousMediumConfig()
-    with pytest.raises(ValueError, match="unknown medium field 'nope'.*medium-grid, medium-homogeneous"):
-        parse_config(["uw3dgs", "--model.medium-field", "nope"])
-    with pytest.raises(ValueError, match="unknown medium field 'gaussians'"):  # a field of another kind
-        parse_config(["uw3dgs", "--model.medium-field", "gaussians"])
-    assert parse_config(["3dgs", "--model.gaussian-field", "gaussians"]).model.gaussian_field == "gaussians"
+    # an option of the default field selects it without its token; the method's own defaults are kept
+    chosen = parse_config(["uw3dgs-paper", "--model.medium.resolution", "8"]).model.medium
+    assert chosen == dataclasses.replace(METHODS["uw3dgs-paper"].config.model.medium, resolution=8)
+    # the token may come after other options, and the datamanager's subcommand after it
+    config = parse_config(["uw3dgs", "--max-num-iterations", "7", "medium-homogeneous", "synthetic",
+                           "--datamanager.scene.width", "40", "--model.medium.no-learn-beta"])
+    assert (type(config.model.medium), config.model.medium.learn_beta, config.max_num_iterations,
+            config.datamanager.scene.width) == (HomogeneousMediumConfig, False, 7, 40)
+    assert type(parse_config(["3dgs", "gaussians"]).model.gaussians) is type(METHODS["3dgs"].config.model.gaussians)
+    for argv in (["uw3dgs", "nope"], ["uw3dgs", "gaussians", "gaussians"],  # unknown; a field of another kind
+                 ["uw3dgs", "--model.medium-field", "medium-homogeneous"],  # the removed selector option
+                 ["uw3dgs", "medium-homogeneous", "--model.medium.resolution", "8"]):  # the grid's knob
+        with pytest.raises(SystemExit):
+            parse_config(argv)
 
 
-def test_help_shows_the_field_options_and_the_chosen_fields_knobs(capsys):
-    homogeneous = ["uw3dgs", "--model.medium-field", "medium-homogeneous"]
+def test_config_files_with_the_removed_field_name_options_still_load():
+    """Runs saved while fields were chosen by a name option (`medium_field: medium-grid`) load: the name was a copy
+    of what the field's `_type` says."""
+    data = config_to_dict(parse_config(["uw3dgs", "medium-homogeneous"]))
+    data["model"] = {**data["model"], "gaussian_field": "gaussians", "medium_field": "medium-homogeneous"}
+    assert config_from_dict(data) == parse_config(["uw3dgs", "medium-homogeneous"])
+    data["model"]["medium_fieldd"] = "x"  # a typo is still an error
+    with pytest.raises(ValueError, match="no option.*medium_fieldd"):
+        config_from_dict(data)
+
+
+def test_help_shows_the_field_subcommands_and_the_chosen_fields_knobs(capsys):
     for argv, present, absent in ((["uw3dgs"], "--model.medium.resolution", None),
-                                  (homogeneous, "--model.medium.b-inf-init", "--model.medium.resolution")):
+                                  (["uw3dgs", "medium-homogeneous"], "--model.medium.b-inf-init",
+                                   "--model.medium.resolution")):
         with pytest.raises(SystemExit):
             parse_config([*argv, "--help"])
         out = capsys.readouterr().out
-        assert "--model.medium-field" in out and "--model.gaussian-field" in out and present in out
-        assert absent is None or absent not in out
+        assert present in out and (absent is None or absent not in out)
+        assert argv[1:] or ("medium-homogeneous" in out and "medium-grid" in out)  # the choices, listed
 
 
 def test_uw3dgs_trains_and_evaluates_with_the_homogeneous_medium(make_config):
     base = make_config(steps=20, timestamp="homogeneous")
     spec = METHODS["uw3dgs"].config
-    model = dataclasses.replace(spec.model.with_field("medium_field", "medium-homogeneous"),
+    model = dataclasses.replace(spec.model, medium=HomogeneousMediumConfig(),
                                 densification=base.model.densification, gaussians=base.model.gaussians)
     trainer = Trainer(dataclasses.replace(base, method_name="uw3dgs", model=model, optimizers=spec.optimizers))
     trainer.setup()
@@ -121,7 +136,7 @@ def test_uw3dgs_trains_and_evaluates_with_the_homogeneous_medium(make_config):
     assert note["lines"][0].startswith("beta_D (") and note["open_water"] in (True, False)
 
 
-def test_a_field_registered_at_run_time_is_chosen_by_name(make_config):
+def test_a_field_registered_at_run_time_is_a_subcommand(make_config):
     """The same registry third-party packages fill through the `uw3dgs.fields` entry point (tests/test_packaging.py
     installs a real plugin package): a name, a config, a kind."""
 
@@ -131,7 +146,8 @@ def test_a_field_registered_at_run_time_is_chosen_by_name(make_config):
 
     FIELDS.register(FieldSpec("test-clear-water", "Nearly clear water", ClearWaterConfig(), kind="medium"))
     try:
-        model = METHODS["uw3dgs"].config.model.with_field("medium_field", "test-clear-water")
+        model = parse_config(["uw3dgs", "test-clear-water"]).model
+        assert type(model.medium) is ClearWaterConfig
         medium = model.medium.setup(points=torch.zeros(1, 3), camera_centers=torch.zeros(1, 3))
         torch.testing.assert_close(F.softplus(medium.beta_d_raw), torch.full((3,), 0.01))
         torch.testing.assert_close(medium.beta_d_raw.detach(), softplus_inverse(torch.full((3,), 0.01)))

@@ -131,8 +131,8 @@ def test_resume_refuses_another_medium_naming_the_option(make_config):
     medium = dataclasses.replace(config.model.medium, resolution=8, components=2)
     run = train(dataclasses.replace(config, model=dataclasses.replace(config.model, medium=medium))).run_dir
     saved = str(run / "config.yml")
-    cases = {("--model.medium-field", "medium-homogeneous"): r"--model\.medium-field \('medium-grid' in the "
-                                                             r"checkpoint, 'medium-homogeneous' now\)",
+    cases = {("medium-homogeneous",): r"--model\.medium \(the subcommand 'medium-grid' in the checkpoint, "
+                                      r"'medium-homogeneous' now\)",
              ("--model.medium.resolution", "4"): r"--model\.medium\.resolution \(8 in the checkpoint, 4 now\)",
              ("--model.medium.components", "3"): r"--model\.medium\.components \(2 in the checkpoint, 3 now\)",
              ("--model.medium.no-learn-beta",): r"--model\.medium\.learn-beta \(True in the checkpoint, False now\)"}

@@ -118,9 +118,9 @@ def test_third_party_plugin_method_appears(fresh_venv, tmp_path):
     assert "(default: 7)" in run([uw_train, "demo-plugin-method", "--help"], cwd="/").stdout
 
 
-def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_shows(fresh_venv, tmp_path):
+def test_third_party_field_plugin_is_a_subcommand_and_exports_renders_and_shows(fresh_venv, tmp_path):
     """A medium field from another package, registered through the `uw3dgs.fields` entry point, with a class of its
-    own that varies in space: its knobs in `uw-train uw3dgs --model.medium-field NAME --help`, a run trains with it
+    own that varies in space: its knobs in `uw-train uw3dgs NAME --help`, a run trains with it
     and records it, and uw-export, uw-render and the viewer serve it through the framework's interfaces alone."""
     install_plugin(fresh_venv, tmp_path, "uw3dgs_field_demo", """
         from dataclasses import dataclass
@@ -153,7 +153,7 @@ def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_show
         field = FieldSpec("demo-clear-water", "Layered water (a plugin)", ClearWaterConfig(), kind="medium")
     """, "uw3dgs.fields", "demo-clear-water = \"uw3dgs_field_demo:field\"")
     bin_dir = fresh_venv / "bin"
-    chosen = ["uw3dgs", "--model.medium-field", "demo-clear-water"]
+    chosen = ["uw3dgs", "demo-clear-water"]
     assert "--model.medium.turbidity-note" in run([str(bin_dir / "uw-train"), *chosen, "--help"], cwd="/").stdout
     # the PyTorch paths of every kernel: the venv's own copy of the kernel sources (another path than the session's
     # build) would otherwise be compiled again, minutes on a 2-core machine, for what this test does not check
@@ -164,7 +164,7 @@ def test_third_party_field_plugin_is_chosen_by_name_and_exports_renders_and_show
     run([str(bin_dir / "uw-train"), *args], cwd="/")
     config = tmp_path / "out" / "synthetic" / "uw3dgs" / "t" / "config.yml"
     saved = config.read_text()
-    assert "medium_field: demo-clear-water" in saved and "uw3dgs_field_demo.ClearWaterConfig" in saved
+    assert "_type: uw3dgs_field_demo.ClearWaterConfig" in saved
     run([str(bin_dir / "uw-export"), str(config), "--output", str(tmp_path / "scene.ply"), "--medium-samples", "3"],
         cwd="/")
     medium = json.loads((tmp_path / "scene.medium.json").read_text())  # named after the PLY

@@ -113,6 +113,10 @@ MOVED_CLASSES = {
 }
 """Config classes that moved, old name -> new: run folders saved before the move keep loading (and resuming)."""
 
+REMOVED_OPTIONS = frozenset({"gaussian_field", "medium_field", "radiance_field"})
+"""Options that were removed because another key says the same (a field's registry name is its config's `_type`
+now that fields are chosen by subcommand): skipped when a config file written before is read."""
+
 
 def _import_config_class(qualname: Any, key: str = "") -> type:
     if not isinstance(qualname, str) or "." not in qualname:
@@ -268,6 +272,7 @@ def config_from_dict(data: dict[str, Any], key: str = "") -> Any:
     cls = _import_config_class(data.get("_type"), key)
     hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init and f.name != "_target"}
+    data = {k: v for k, v in data.items() if k in names or k not in REMOVED_OPTIONS}
     unknown = set(data) - names - {"_type"}
     if unknown:
         raise ValueError(f"{_where(key)}{cls.__name__} has no option(s) {sorted(unknown)}")

@@ -38,7 +38,7 @@ class DataManagerSpec:
 
 @dataclass(frozen=True)
 class FieldSpec:
-    """A model part that methods compose, chosen by registry name (`--model.medium-field NAME`).
+    """A model part that methods compose, chosen by its registry name as a subcommand (`uw-train uw3dgs NAME`).
 
     `kind` says which slot of a model it fills: "gaussians" (the scene's Gaussians) or "medium" (the water);
     a model config accepts only fields of the kind its slot asks for. `config` is the field's default config,

@@ -65,12 +65,12 @@ VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "albedo-0.2": ({"dark_patch_albedo": 0.2}, []),
     "narrow-range": ({"altitude": 1.5, "tilt_deg": 5.0}, []),
     "no-open-water-albedo-0.1": ({"open_water": False, "dark_patch_albedo": 0.1}, []),
-    "turbid-bottom-grid": ({"medium_profile": "turbid-bottom"}, ["--model.medium-field", "medium-grid"]),
-    "turbid-bottom-homogeneous": ({"medium_profile": "turbid-bottom"}, ["--model.medium-field", "medium-homogeneous"]),
-    "plume-grid": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-grid"]),
-    "plume-homogeneous": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-homogeneous"]),
-    "turbid-bottom-grid-live": ({"medium_profile": "turbid-bottom"}, ["--model.medium-field", "medium-grid", *LIVE]),
-    "plume-grid-live": ({"medium_profile": "plume"}, ["--model.medium-field", "medium-grid", *LIVE]),
+    "turbid-bottom-grid": ({"medium_profile": "turbid-bottom"}, ["medium-grid"]),
+    "turbid-bottom-homogeneous": ({"medium_profile": "turbid-bottom"}, ["medium-homogeneous"]),
+    "plume-grid": ({"medium_profile": "plume"}, ["medium-grid"]),
+    "plume-homogeneous": ({"medium_profile": "plume"}, ["medium-homogeneous"]),
+    "turbid-bottom-grid-live": ({"medium_profile": "turbid-bottom"}, ["medium-grid", *LIVE]),
+    "plume-grid-live": ({"medium_profile": "plume"}, ["medium-grid", *LIVE]),
 }
 PARAMETERS = ("beta_D", "beta_B", "B_inf")
 BAR, GAIN_DB = 0.15, 6.0

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from uw3dgs.bench.grid import Cell
+from uw3dgs.config import REMOVED_OPTIONS
 from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.results_table import RESULTS, read_results, stale_results
 from uw3dgs.engine.run_folder import RunFolderError, RunLock, flatten, holds_a_run, lock_holder
@@ -76,13 +77,16 @@ def expected_config(cell: Cell) -> dict[str, Any]:
 
 
 def config_differences(saved: dict[str, Any], expected: dict[str, Any]) -> list[str]:
-    """The options whose values differ, as 'key (saved in the run, in the grid)'; paths compared resolved."""
+    """The options whose values differ, as 'key (saved in the run, in the grid)'; paths compared resolved, options
+    removed since the run was saved (`uw3dgs.config.REMOVED_OPTIONS`) skipped."""
     a, b = flatten(saved), flatten(expected)
     out = []
     for key in dict.fromkeys([*a, *b]):
         if key.split(".")[0] in IGNORED_OPTIONS:
             continue
         x, y = a.get(key, "<absent>"), b.get(key, "<absent>")
+        if key.rpartition(".")[2] in REMOVED_OPTIONS and y == "<absent>":  # said again by a `_type` both have
+            continue
         if key in ("data", "output_dir") and isinstance(x, str) and isinstance(y, str):
             x, y = str(Path(x).resolve()), str(Path(y).resolve())
         if x != y:

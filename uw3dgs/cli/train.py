@@ -32,18 +32,6 @@ def _flag_value(argv: list[str], flag: str) -> str | None:
     return None
 
 
-def _select_fields(config: TrainConfig, argv: list[str]) -> TrainConfig:
-    """Apply `--model.<selector> NAME` (e.g. `--model.medium-field medium-homogeneous`) before parsing: the named
-    registered field's config takes its slot, so `--model.medium.*` and `--help` show that field's knobs."""
-    model = config.model
-    for selector in model.field_slots:
-        flags = (f"--model.{selector.replace('_', '-')}", f"--model.{selector}")
-        name = next((v for v in (_flag_value(argv, f) for f in flags) if v is not None), None)
-        if name is not None and name != getattr(model, selector):
-            model = model.with_field(selector, name)
-    return config if model is config.model else dataclasses.replace(config, model=model)
-
-
 def parse_config(argv: list[str]) -> TrainConfig:
     """Method subcommands from the registry; with --load-config the saved run supplies the defaults."""
     defaults = {name: spec.config for name, spec in METHODS.items()}
@@ -57,13 +45,14 @@ def parse_config(argv: list[str]) -> TrainConfig:
         defaults[saved.method_name] = dataclasses.replace(saved, load_config=Path(load), resume=False)
         if not argv or argv[0] not in defaults:
             argv = [saved.method_name, *argv]
-    if argv and argv[0] in defaults:
-        defaults[argv[0]] = _select_fields(defaults[argv[0]], argv)
     choices = tyro.extras.subcommand_type_from_defaults(defaults, descriptions, prefix_names=False)
     # the configs' own checks run once the whole config is built, so an error names the option in full
     # (--optimizers.means.lr, --datamanager.scene.width), as typed
     with deferred_checks():
-        config = tyro.cli(choices, args=argv, prog="uw-train", description="Train a uw3dgs method.")
+        # CascadeSubcommandArgs: options of a default subcommand (a field, the datamanager) select it without its
+        # token (`uw-train uw3dgs --model.medium.init prior`), and options may follow later subcommands
+        config = tyro.cli(choices, args=argv, prog="uw-train", description="Train a uw3dgs method.",
+                          config=(tyro.conf.CascadeSubcommandArgs,))
     check_config(config)
     return config
 

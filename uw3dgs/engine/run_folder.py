@@ -21,6 +21,7 @@ import torch
 
 from uw3dgs.config import config_to_dict
 from uw3dgs.engine.checkpoint import CHECKPOINT_DIR, list_checkpoints
+from uw3dgs.models.field_slot import registered_field_name
 from uw3dgs.utils.console import warn
 from uw3dgs.utils.io import describe_os_error, remove_temp_files
 from uw3dgs.utils.safe_yaml import load_yaml
@@ -164,6 +165,9 @@ def _option_text(key: str, values: tuple[Any, Any]) -> str:
     old, new = values
     if key.endswith("._type"):
         owner = "--" + key.removesuffix("._type").replace("_", "-")
+        names = [registered_field_name(str(v)) for v in values]
+        if all(names):  # a field slot: the subcommands that chose the two fields
+            return f"{owner} (the subcommand '{names[0]}' in the checkpoint, '{names[1]}' now)"
         return f"{owner} (a {str(old).rpartition('.')[2]} in the checkpoint, a {str(new).rpartition('.')[2]} now)"
     return f"--{key.replace('_', '-')} ({old!r} in the checkpoint, {new!r} now)"
 
@@ -205,8 +209,8 @@ def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoin
     Compared: the state_dict keys and every tensor's shape (the first dimension of the tensors density control
     resizes, `model.state_keys_resized_in_training()`, is free) and the names of the parameter groups (the
     optimizers' states). The message names the options that differ from the checkpoint's config: those under the
-    mismatching part of the model (`model.gaussians.*` for `gaussians.shN`, with the selector that chose it, e.g.
-    `--model.medium-field`), else every model option that differs."""
+    mismatching part of the model (`model.gaussians.*` for `gaussians.shN`; another field in a slot by the subcommands
+    that chose each), else every model option that differs."""
     problems, parts = state_problems(model, state["model"])
     groups_saved, groups_now = set(state.get("optimizers", {})), set(model.param_groups())
     if groups_saved != groups_now:
@@ -221,10 +225,8 @@ def shape_mismatch(model: Any, state: dict[str, Any], new_config: Any, checkpoin
             saved_config = {}
     changed = _changed_model_options(saved_config if isinstance(saved_config, dict) else {},
                                      config_to_dict(new_config))
-    slots = getattr(type(model.config), "field_slots", {})
     near = {k: v for k, v in changed.items()
-            if any(k.startswith(f"model.{p}.") or k == f"model.{p}._type" for p in parts)
-            or any(k == f"model.{sel}" and slot in parts for sel, (slot, _) in slots.items())}
+            if any(k.startswith(f"model.{p}.") or k == f"model.{p}._type" for p in parts)}
     named = near or changed
     options = ", ".join(_option_text(k, v) for k, v in named.items()) or \
         "no option differs from the checkpoint's config (was it written by another uw3dgs version?)"

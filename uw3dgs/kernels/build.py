@@ -145,7 +145,8 @@ def load_extension(verbose: bool = False) -> ModuleType | None:
                 os.environ["PATH"] = bin_dir + os.pathsep + os.environ.get("PATH", "")
             with build_lock(directory):
                 if not (directory / f"{EXTENSION_NAME}.so").exists():
-                    info(f"building the compiled CPU kernels into {directory} (first use, about a minute)")
+                    info(f"building the compiled CPU kernels into {directory} (first use, about two minutes on two "
+                             "cores)")
                 module = cpp_extension.load(
                     name=EXTENSION_NAME,
                     sources=[str(path) for path in SOURCES],
@@ -186,3 +187,17 @@ def extension() -> ModuleType:
     if module is None:
         raise RuntimeError(f"the compiled CPU kernels are not available: {_state.get('error')}")
     return module
+
+
+def main() -> None:
+    """`python -m uw3dgs.kernels.build`: build (or find) the kernels now instead of at their first use; exit status 1
+    when they cannot be built (the reason is printed)."""
+    module = load_extension()
+    if module is None:
+        print(f"uw3dgs: the compiled CPU kernels could not be built: {_state.get('error')}", file=sys.stderr)
+        sys.exit(1)
+    print(f"uw3dgs: compiled CPU kernels ready in {build_directory()} ({_state['load_seconds']:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()

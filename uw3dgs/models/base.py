@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 from torch import Tensor, nn
 
@@ -19,7 +18,6 @@ from uw3dgs.medium.formation import Water
 from uw3dgs.metrics.image import psnr, ssim
 from uw3dgs.metrics.lpips import lpips_metrics
 from uw3dgs.metrics.underwater_quality import underwater_quality
-from uw3dgs.registry import field_spec
 
 
 @dataclass(frozen=True)
@@ -30,28 +28,6 @@ class ModelConfig(InstantiateConfig):
     medium's reads, SSIM of the loss, the method's own losses and passes): 'compiled' = compiled where the tensors are
     CPU float32/float64 and the module builds, PyTorch elsewhere (CUDA); 'torch' = PyTorch everywhere (the reference;
     the same numbers to float rounding). The rasterizer is chosen by --model.raster.backend."""
-
-    field_slots: ClassVar[dict[str, tuple[str, str]]] = {}
-    """Model parts chosen by registry name: selector option -> (the option holding that part's config, the
-    field kind it takes), e.g. {"medium_field": ("medium", "medium")} for `--model.medium-field NAME` with
-    knobs under `--model.medium.*`."""
-
-    def __post_init__(self) -> None:
-        # a selector names a registered field; its slot must hold that field's config (a changed name with the
-        # old knobs, as from dataclasses.replace, gets the new field's defaults)
-        for selector, (slot, kind) in self.field_slots.items():
-            spec = field_spec(getattr(self, selector), kind)
-            if type(getattr(self, slot)) is not type(spec.config):
-                object.__setattr__(self, slot, spec.config)
-        super().__post_init__()
-
-    def with_field(self, selector: str, name: str) -> ModelConfig:
-        """This config with the registered field `name` in `selector`'s slot, at that field's defaults."""
-        if selector not in self.field_slots:
-            raise ValueError(f"{type(self).__name__} has no field option '{selector}'; it has "
-                             f"{', '.join(self.field_slots) or 'none'}")
-        slot, kind = self.field_slots[selector]
-        return dataclasses.replace(self, **{selector: name, slot: field_spec(name, kind).config})
 
 
 def restored_image_metrics(uri: Tensor, batch: Batch) -> dict[str, float | None]:
