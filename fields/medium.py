@@ -1,6 +1,6 @@
 """The learnable underwater medium: attenuation beta_D, backscatter beta_B and the veiling light B_inf.
 
-Two fields are registered (kind "medium", chosen with `--model.medium-field NAME`):
+Two fields are registered (kind "medium", each a subcommand of `uw-train uw3dgs`):
 - `medium-grid` (`MediumGrid`, the paper's): beta_D and beta_B as RGB fields over the scene box, each a
   TensoRF vector-matrix (VM) decomposition read by trilinear interpolation;
 - `medium-homogeneous` (`HomogeneousMedium`): one beta_D, beta_B per channel everywhere (SeaSplat's medium).
@@ -111,6 +111,12 @@ class MediumFieldConfig(InstantiateConfig):
     collapse_without_water: bool = True
     """With the verdict 'little or no water', render without a medium (the URI is the UWI, as 3DGS) instead of
     learning water that is not there. False learns the medium anyway."""
+    water_check_multiview: bool = True
+    """Where the single-image estimate sees water, judge again from the multi-view fit (--model.medium.multiview.*):
+    little or no water when its beta_D's bootstrap 95% bound stays below the level in every channel (water that
+    scatters also attenuates). On a dry scene the surfaces' colours do not change with range, while a single image
+    can read haze into shading and texture (docs/evaluation.md, "The water verdict"). False: the single-image
+    verdict alone (no multi-view fit)."""
 
     def check_options(self) -> None:
         super().check_options()

@@ -204,6 +204,9 @@ class IdentifiabilityReport:
     tolerance: float
     resamples: int
     checks: list[ParameterCheck]
+    spatial_undecided: bool = False
+    """The halves are farther apart than the spatial tolerance, but the estimate's own spread or its assumptions move
+    it as much: whether the medium varies cannot be told (not 'homogeneous')."""
 
     def weak(self, name: str) -> list[bool]:
         """[3] whether `name`'s channels are not identifiable."""
@@ -233,8 +236,10 @@ class IdentifiabilityReport:
         if self.spatial_disagreement is not None:
             halves = "; ".join(f"{name} {'/'.join(f'{x:.0%}' for x in v)}"
                                for name, v in self.spatial_disagreement.items())
-            out.append(f"halves of the scene disagree by {halves}: "
-                       f"{'varies in space' if self.varies_in_space else 'homogeneous within the tolerance'}")
+            verdict = "varies in space" if self.varies_in_space else (
+                "cannot tell whether the medium varies: the estimate's own spread or assumptions (above) move it as "
+                "much" if self.spatial_undecided else "homogeneous within the tolerance")
+            out.append(f"halves of the scene disagree by {halves}: {verdict}")
         return out
 
 
@@ -401,6 +406,8 @@ def assess_medium(point: Tensor, color: Tensor, z: Tensor, fit: MediumFit, b_inf
                       and float(a) <= tolerance
                       for d, s, a in zip(spatial["beta_D"], spreads["beta_D"], shift, strict=True))
         report.varies_in_space = varying >= config.spatial_min_channels
+        apart = sum(d > config.spatial_tolerance for d in spatial["beta_D"]) >= config.spatial_min_channels
+        report.spatial_undecided = apart and not report.varies_in_space
     checks, pinned = {}, {}
     for k, name in reversed(list(enumerate(("beta_D", "beta_B", "B_inf")))):  # B_inf first: the betas depend on it
         estimate = fit.medium[k].double()

@@ -474,6 +474,9 @@ class MultiviewEstimate:
     (None: not checked, no positions or too few points in a half)."""
     varies_in_space: bool = False
     checks: list[MultiviewCheck] = field(default_factory=list)
+    upper: list[list[float]] | None = None
+    """[3 parameters (beta_D, beta_B, B_inf)][3 channels] the bootstrap's 95% quantile, at least the fit's value:
+    an upper bound in absolute units (what the water verdict reads; the relative spreads explode near 0)."""
 
     def check(self, name: str, c: int) -> MultiviewCheck:
         return next(x for x in self.checks if x.name == name and x.channel == CHANNELS[c])
@@ -563,6 +566,7 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
         result.spatial_disagreement = _spatial_disagreement(sub_ids, obs[1][sub], obs[2][sub], weights[sub], where,
                                                             fit, config)
     lo, hi = torch.quantile(torch.stack(boot), torch.tensor([0.05, 0.95], dtype=torch.float64), dim=0)
+    result.upper = torch.maximum(hi, values).tolist()
     spread = (hi - lo) / 2 / values.abs().clamp_min(1e-9)
     if result.spatial_disagreement is not None:
         result.varies_in_space = sum(d > config.spatial_tolerance and d > 2 * float(spread[0, c])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -480,6 +482,12 @@ def test_the_report_flags_a_medium_that_varies_in_space():
     assert "varies in space" in report.lines()[-1]
     without = assess_medium(point, color, z, fit, TRUE_BINF, 10, 0.01, residual=False, config=config)
     assert without.spatial_disagreement is None and not without.varies_in_space
+    # the same halves, judged with a tolerance no bootstrap spread meets: far apart, but not told from the estimate's
+    # own noise, which the line says instead of calling the medium homogeneous
+    strict = assess_medium(point, color, z, fit, TRUE_BINF, 10, 0.01, residual=False, positions=positions,
+                           config=dataclasses.replace(config, tolerance=1e-6))
+    assert not strict.varies_in_space and strict.spatial_undecided and not report.spatial_undecided
+    assert "cannot tell whether the medium varies" in strict.lines()[-1] and "homogeneous" not in strict.lines()[-1]
 
     point, color, z, positions = varying_medium_observations(800, 6, gain=0.0, seed=0)
     fit = fit_medium(point, color, z, b_inf=TRUE_BINF, residual=False)

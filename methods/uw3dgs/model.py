@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Annotated, Any
 
 import torch
 from torch import Tensor, nn
@@ -38,6 +38,7 @@ from uw3dgs.methods.uw3dgs.depth_consistency import depth_consistency
 from uw3dgs.methods.uw3dgs.paup import PAUP, PAUPConfig, combine_views, observe_view, relaxed_keep_mask
 from uw3dgs.methods.uw3dgs.paup.branch import PER_GAUSSIAN_BUFFERS
 from uw3dgs.metrics.medium import medium_eval_summary, restored_image_metrics
+from uw3dgs.models.field_slot import field_slot
 from uw3dgs.options import check_number
 from uw3dgs.registry import MethodSpec
 from uw3dgs.render import Splats, masked_l1, rasterize
@@ -62,10 +63,9 @@ def weak_medium_action(report: IdentifiabilityReport) -> str:
 @dataclass(frozen=True)
 class UW3DGSModelConfig(GaussianSplattingModelConfig):
     _target: Target = target(lambda: UW3DGSModel)
-    medium_field: str = "medium-grid"
-    """Registry name of the medium field (entry points `uw3dgs.fields` of kind 'medium'): 'medium-grid' (VM grids,
-    the paper) or 'medium-homogeneous' (one value per channel); its knobs are --model.medium.*."""
-    medium: MediumFieldConfig = field(default_factory=MediumGridConfig)
+    medium: Annotated[MediumFieldConfig, field_slot("medium")] = field(default_factory=MediumGridConfig)
+    """The medium field: a registered field of kind 'medium', chosen by its subcommand: 'medium-grid' (VM grids, the
+    paper; the default) or 'medium-homogeneous' (one value per channel); its knobs are --model.medium.*."""
     use_medium: bool = True
     """False renders plain 3DGS (the no-medium ablation): the Gaussians must explain the water themselves."""
     beta_loss_weight: float = 0.05
@@ -80,9 +80,6 @@ class UW3DGSModelConfig(GaussianSplattingModelConfig):
     paup: PAUPConfig = field(default_factory=PAUPConfig)
     uncertainty_weighted_depth: bool = True
     """Composite depth with PAUP's (1 - U_i) weights (the paper's Eq. base_depth); False: the plain depth."""
-
-    field_slots: ClassVar[dict[str, tuple[str, str]]] = {**GaussianSplattingModelConfig.field_slots,
-                                                         "medium_field": ("medium", "medium")}
 
     def check_options(self) -> None:
         super().check_options()
@@ -135,6 +132,8 @@ class UW3DGSModel(GaussianSplattingModel):
             self.water = water_verdict(estimate.beta_d, estimate.beta_b, far_range(estimate.observations[2]),
                                        mc.no_water_level)
             info(f"water: {self.water.line()}")
+            if not self.water.little_water and mc.water_check_multiview:
+                self.water = self._multiview_water(estimate, scene, train_indices)
             if self.water.little_water and mc.collapse_without_water:
                 self.water_free.fill_(True)
                 info("water: uw3dgs renders without a medium here, as 3dgs does (the medium report is skipped; "
@@ -157,6 +156,25 @@ class UW3DGSModel(GaussianSplattingModel):
         self.medium.set_prior(estimate.beta_d, estimate.beta_b)
         with torch.no_grad():
             self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
+
+    def _multiview_water(self, estimate: MediumEstimate, scene: SceneData, train_indices: list[int]) -> WaterVerdict:
+        """The verdict from the multi-view fit (B_inf held at the estimate's) where it could fit, on beta_D's bootstrap
+        95% bound, taken for beta_B too; the single-image verdict (`self.water`) where it could not or where that still
+        shows water. beta_B's own fit is not used: backscatter saturated at every range the views see adds one colour
+        to every surface, which the surfaces' own colours absorb, so it fits a dry scene as well as none; and water
+        that scatters light also attenuates it (beam attenuation = absorption + scattering)."""
+        cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
+        fit = observe_and_estimate(scene.points, cameras, images, self.dataset_scale, self.config.medium.multiview,
+                                   estimate.b_inf)
+        assert self.water is not None
+        if fit.upper is None:
+            info("water: the multi-view check could not fit (too few surfaces seen at several ranges)")
+            return self.water
+        beta_d = torch.tensor(fit.upper[0])
+        bound = water_verdict(beta_d, beta_d, self.water.far_range, self.water.level,
+                              source="the multi-view fit (beta_D's 95% bound, for beta_B too)")
+        info(f"water: {bound.line()}")
+        return bound if bound.little_water else self.water
 
     def _combine_by_evidence(self, estimate: MediumEstimate, water: Tensor | None, scene: SceneData,
                              train_indices: list[int]) -> MediumEstimate:
