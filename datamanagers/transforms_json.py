@@ -39,6 +39,7 @@ import pycolmap
 
 from uw3dgs.data.colmap_dataset import ColmapModel, DatasetError
 from uw3dgs.data.ply import read_ply_vertices
+from uw3dgs.utils.console import warn
 from uw3dgs.utils.images import image_size
 
 TRANSFORMS_FILE = "transforms.json"
@@ -109,7 +110,8 @@ def frame_camera(meta: dict, frame: dict, path: Path, image_path: Path) -> pycol
 
 
 def resolve_image(root: Path, file_path: str, path: Path) -> Path:
-    """The image a frame's `file_path` names (relative to ROOT; Blender-style paths without a suffix too)."""
+    """The image a frame's `file_path` names (relative to ROOT; Blender-style paths without a suffix too);
+    FileNotFoundError if there is none."""
     image = (root / file_path).resolve()
     if image.is_file():
         return image
@@ -134,7 +136,7 @@ def read_transforms(root: Path) -> TransformsScene:
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not frames:
         raise DatasetError(f"{path}: no 'frames' list; a transforms.json names each image and its pose in 'frames'")
-    views = []
+    views, missing = [], []
     for frame in frames:
         if "file_path" not in frame or "transform_matrix" not in frame:
             raise DatasetError(f"{path}: a frame without 'file_path' or 'transform_matrix' ({frame}); every frame "
@@ -143,8 +145,19 @@ def read_transforms(root: Path) -> TransformsScene:
         if matrix.shape not in ((3, 4), (4, 4)) or not np.isfinite(matrix).all():
             raise DatasetError(f"{path}: frame {frame['file_path']} has a transform_matrix of shape {matrix.shape} "
                                "or with non-finite values; it must be a 4x4 (or 3x4) camera-to-world matrix")
-        image = resolve_image(root, frame["file_path"], path)
+        try:
+            image = resolve_image(root, frame["file_path"], path)
+        except FileNotFoundError:
+            missing.append(str(frame["file_path"]))
+            continue
         views.append((image, frame_camera(meta, frame, path, image), opengl_c2w_to_viewmat(matrix)))
+    if missing:  # e.g. instant-ngp's fox: its file lists 67 frames, its repository ships 50 of the images
+        shown = ", ".join(missing[:3]) + (", ..." if len(missing) > 3 else "")
+        if not views:
+            raise FileNotFoundError(f"{path}: none of its {len(missing)} frames' images exists (first: {shown}); "
+                                    "restore the images beside the file")
+        warn(f"{path}: {len(missing)} of its {len(frames)} frames name images that are not there ({shown}); "
+             f"training on the {len(views)} that are")
     views.sort(key=lambda view: str(view[0]))
     image_dir = Path(os.path.commonpath([str(v[0].parent) for v in views]))
     names = [str(PurePosixPath(*v[0].relative_to(image_dir).parts)) for v in views]

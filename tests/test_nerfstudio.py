@@ -18,6 +18,7 @@ from uw3dgs.data.colmap_dataset import DatasetError
 from uw3dgs.data.datamanager import AutoDataManagerConfig
 from uw3dgs.datamanagers.colmap import ColmapDataManagerConfig
 from uw3dgs.datamanagers.nerfstudio import NerfstudioDataManagerConfig
+from uw3dgs.datamanagers.transforms_json import read_transforms
 from uw3dgs.engine.trainer import Trainer
 from uw3dgs.methods.gaussian_splatting import method as gaussian_splatting
 
@@ -132,7 +133,6 @@ def test_instant_ngp_style_file_with_top_level_intrinsics(tmp_path):
 @pytest.mark.parametrize("change, fragment", [
     (lambda meta: meta["frames"][0].update(camera_model="OPENCV_FISHEYE"), "OPENCV_FISHEYE"),
     (lambda meta: meta["frames"][1].update(k3=0.01), "k3"),
-    (lambda meta: meta["frames"][2].update(file_path="images/gone.png"), "gone.png"),
     (lambda meta: meta["frames"][0].pop("transform_matrix"), "transform_matrix"),
     (lambda meta: meta.update(train_filenames=["images/nope.png"]), "nope.png"),
 ])
@@ -144,6 +144,25 @@ def test_bad_transforms_json_is_named(tmp_path, change, fragment):
     with pytest.raises((DatasetError, FileNotFoundError)) as info:
         NerfstudioDataManagerConfig(cache_dir=tmp_path / "cache").setup(data=root)
     assert fragment in str(info.value) and "\n" not in str(info.value)
+
+
+def test_frames_whose_images_are_missing_are_skipped_with_a_warning(tmp_path, capsys):
+    """instant-ngp's fox lists 67 frames and ships 50 images: the frames without an image are left out, named in
+    one warning; a file none of whose images exists is an error naming it."""
+    root = colmap_to_transforms(make_dataset(tmp_path / "data"), NS_WORLD)
+    meta = json.loads((root / "transforms.json").read_text())
+    frames = len(meta["frames"])
+    meta["frames"][2]["file_path"] = "images/gone.png"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    scene = read_transforms(root)
+    assert len(scene.model.names) == frames - 1 and "gone.png" not in " ".join(scene.model.names)
+    err = capsys.readouterr().err
+    assert f"1 of its {frames} frames" in err and "gone.png" in err
+    for frame in meta["frames"]:
+        frame["file_path"] = "images/gone.png"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(FileNotFoundError, match="none of its .* frames' images exists"):
+        read_transforms(root)
 
 
 def test_a_plain_image_folder_is_told_to_run_process_data(tmp_path):
