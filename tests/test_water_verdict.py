@@ -156,3 +156,13 @@ def test_the_multiview_check_overrules_a_single_image_that_reads_water_into_a_dr
         assert "water: water: optical depth" in err and "of the single-image estimate" in err
         assert bool(model.water_free) == collapsed
         assert ("of the multi-view fit" in model.run_notes()["water"]["line"]) == collapsed
+
+
+def test_uw_eval_judges_the_learned_medium_again_and_names_each_medium(tiny_uw3dgs_trainer, tmp_path):
+    from uw3dgs.cli.eval import EvalArgs, run_eval
+
+    water = run_eval(EvalArgs(load_config=tiny_uw3dgs_trainer.run_dir / "config.yml", save_renders=False,
+                              output_path=tmp_path / "results.json"), progress=False)["water"]
+    assert water["source"] in ("the single-image estimate", "the multi-view fit (beta_D's 95% bound, for beta_B too)")
+    assert water["learned"]["source"] == "the learned medium" and "of the learned medium" in water["learned"]["line"]
+    assert water["learned"]["far_range"] == water["far_range"] and water["learned"]["level"] == water["level"]

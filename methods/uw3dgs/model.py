@@ -419,7 +419,8 @@ class UW3DGSModel(GaussianSplattingModel):
             info("water: the model rendered without a medium (judged water-free before training): its URI is its UWI")
             return {"water": {**before, "learned": None}}
         learned = self.medium_summary()
-        verdict = water_verdict(learned["beta_d"], learned["beta_b"], before["far_range"], before["level"])
+        verdict = water_verdict(learned["beta_d"], learned["beta_b"], before["far_range"], before["level"],
+                                source="the learned medium")
         info(f"water, learned medium: {verdict.line()}")
         return {"water": {**before, "learned": verdict.to_json()}}
 
