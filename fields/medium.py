@@ -111,12 +111,13 @@ class MediumFieldConfig(InstantiateConfig):
     collapse_without_water: bool = True
     """With the verdict 'little or no water', render without a medium (the URI is the UWI, as 3DGS) instead of
     learning water that is not there. False learns the medium anyway."""
-    water_check_multiview: bool = True
-    """Where the single-image estimate sees water, judge again from the multi-view fit (--model.medium.multiview.*):
-    little or no water when its beta_D's bootstrap 95% bound stays below the level in every channel (water that
-    scatters also attenuates). On a dry scene the surfaces' colours do not change with range, while a single image
-    can read haze into shading and texture (docs/evaluation.md, "The water verdict"). False: the single-image
-    verdict alone (no multi-view fit)."""
+    water_check_below: float = 1.0
+    """Where the single-image estimate sees water, but no far optical depth of it reaches this, judge again from the
+    multi-view fit (--model.medium.multiview.*): little or no water when its beta_D's bootstrap 95% bound stays below
+    the level in every channel (water that scatters also attenuates). On a dry scene the surfaces' colours do not
+    change with range, while a single image can read haze into shading and texture (up to 0.33 on the fox photos;
+    real water: 1.2 and more; docs/evaluation.md, "The water verdict"). The fit costs tens of CPU seconds, hence the
+    bound. 0: the single-image verdict alone."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -130,6 +131,7 @@ class MediumFieldConfig(InstantiateConfig):
         check_number(self, "open_water_min_uniform", ge=0, le=1)
         check_number(self, "far_end_quantile", ge=0, lt=1)
         check_number(self, "no_water_level", ge=0)
+        check_number(self, "water_check_below", ge=0)
 
 
 @dataclass(frozen=True)

@@ -132,7 +132,7 @@ class UW3DGSModel(GaussianSplattingModel):
             self.water = water_verdict(estimate.beta_d, estimate.beta_b, far_range(estimate.observations[2]),
                                        mc.no_water_level)
             info(f"water: {self.water.line()}")
-            if not self.water.little_water and mc.water_check_multiview:
+            if not self.water.little_water and max(*self.water.depth_d, *self.water.depth_b) < mc.water_check_below:
                 self.water = self._multiview_water(estimate, scene, train_indices)
             if self.water.little_water and mc.collapse_without_water:
                 self.water_free.fill_(True)
