@@ -338,3 +338,29 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     (tmp_path / "default" / "estimate.json").unlink()  # a finished variant is read back, not estimated or trained
     script.main(argv)
     assert [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")] == lines
+
+
+def test_quality_ranking_ranks_methods_and_correlates_with_the_truth(tmp_path, monkeypatch, capsys):
+    """Spearman's rho against scipy's (ties included), and the script on three methods' fake results: a score that
+    orders the runs as uri_psnr does gets +1, one that reverses them -1."""
+    from scipy.stats import spearmanr
+
+    script = load_script("quality_ranking")
+    g = torch.Generator().manual_seed(0)
+    a, b = torch.randint(0, 5, (30,), generator=g).double().numpy(), torch.rand(30, generator=g).double().numpy()
+    assert script.spearman(a, b) == pytest.approx(spearmanr(a, b).statistic, abs=1e-12)
+    for k, method in enumerate(("good", "middle", "bad")):
+        for seed in range(2):
+            run = tmp_path / method / f"s{seed}"
+            run.mkdir(parents=True)
+            (run / "config.yml").write_text("_type: x\n")
+            psnr = 30.0 - 5 * k + seed * 0.1
+            results = {"uri_psnr": psnr, "uri_uciqe": psnr / 100, "uri_uiqm": -psnr, "clean_uciqe": 0.3,
+                       "clean_uiqm": 3.0}
+            (run / "eval").mkdir()
+            (run / "eval" / "results.json").write_text(json.dumps({"method_name": method, "results": results}))
+    monkeypatch.setattr(sys, "argv", ["quality_ranking.py", str(tmp_path)])
+    script.main()
+    out = capsys.readouterr().out
+    assert "uri_psnr                     good (30.050) > middle (25.050) > bad (20.050)" in out
+    assert "uri_uciqe                    +1.00" in out and "uri_uiqm                     -1.00" in out
