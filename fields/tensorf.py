@@ -55,7 +55,7 @@ def vm_products(planes: nn.ParameterList, lines: nn.ParameterList, x: Tensor) ->
 
 def total_variation(plane: Tensor) -> Tensor:
     """TensoRF's `TVLoss` of one plane [1, R, H, W]: 2 (mean squared vertical + mean squared horizontal
-    difference)."""
+    difference). Not kornia's `total_variation`, which sums absolute differences (tests compare where they meet)."""
     _, r, h, w = plane.shape
     dh = (plane[:, :, 1:] - plane[:, :, :-1]).pow(2).sum() / max(r * (h - 1) * w, 1)
     dw = (plane[:, :, :, 1:] - plane[:, :, :, :-1]).pow(2).sum() / max(r * h * (w - 1), 1)

@@ -24,7 +24,8 @@ def edge_aware_depth_smoothness(image: Tensor, depth: Tensor) -> Tensor:
     """mean |dz/dx e^(-dI/dx)| + mean |dz/dy e^(-dI/dy)| over neighbouring pixels: depth z [H, W], image I
     [H, W, 3], dI the channel mean of the signed forward difference (their `SmoothDepthLoss`, which weights by
     e^(-dI) of the signed difference, not of its absolute value: a darkening edge lets the depth jump, a brightening
-    one penalises the jump more)."""
+    one penalises the jump more). Hence not kornia's `inverse_depth_smoothness_loss`, which weights by e^(-|dI|)
+    (the same where the image only brightens: tests/test_library_references.py)."""
     depth_dx, depth_dy = depth.diff(dim=1), depth.diff(dim=0)
     image_dx, image_dy = image.diff(dim=1).mean(-1), image.diff(dim=0).mean(-1)
     return (depth_dx * torch.exp(-image_dx)).abs().mean() + (depth_dy * torch.exp(-image_dy)).abs().mean()

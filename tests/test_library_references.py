@@ -94,3 +94,32 @@ def test_area_downscale_is_scikit_images_local_mean(height, width, factor):
     ours = area_downscale(image, factor)
     theirs = downscale_local_mean(image.numpy(), (factor, factor, 1))
     assert np.allclose(ours.numpy(), theirs[: height // factor, : width // factor], rtol=0, atol=1e-14)
+
+
+def test_tensorf_plane_tv_is_kornias_total_variation_squared_where_they_meet():
+    """TensoRF's TVLoss squares the neighbours' differences, kornia's `total_variation` takes their absolute value
+    (another operation, so the plane TV stays ours). On a 0/1 plane |d| = d^2, and on a square plane both directions
+    share one normaliser: ours = 2 kornia_sum / (R (H - 1) W)."""
+    from uw3dgs.fields.tensorf import total_variation
+
+    plane = (torch.rand(1, 3, 9, 9, generator=torch.Generator().manual_seed(0)) > 0.5).double()
+    expected = 2 * kornia.losses.total_variation(plane, reduction="sum").sum() / (3 * 8 * 9)
+    torch.testing.assert_close(total_variation(plane), expected, rtol=1e-12, atol=0)
+    assert not torch.allclose(total_variation(plane * 0.5), 2 * kornia.losses.total_variation(
+        plane * 0.5, reduction="sum").sum() / (3 * 8 * 9))  # elsewhere they differ: squares against absolutes
+
+
+def test_seasplat_depth_smoothness_is_kornias_where_the_image_only_brightens():
+    """SeaSplat's `SmoothDepthLoss` weights by e^(-dI) of the signed image difference, kornia's
+    `inverse_depth_smoothness_loss` by e^(-|dI|) (another operation, so ours stays): on an image that brightens to
+    the right and downwards they agree, with the depth in place of the inverse depth."""
+    from uw3dgs.methods.seasplat_losses import edge_aware_depth_smoothness
+
+    g = torch.Generator().manual_seed(1)
+    image = (torch.rand(12, 10, 3, generator=g, dtype=torch.float64) * 0.05).cumsum(0).cumsum(1)
+    depth = torch.rand(12, 10, generator=g, dtype=torch.float64) * 5
+    reference = kornia.losses.inverse_depth_smoothness_loss(depth[None, None], image.permute(2, 0, 1)[None])
+    torch.testing.assert_close(edge_aware_depth_smoothness(image, depth), reference, rtol=1e-12, atol=0)
+    darker = image.flip(0)  # a darkening edge: the signed weight lets the depth jump more
+    assert edge_aware_depth_smoothness(darker, depth) > kornia.losses.inverse_depth_smoothness_loss(
+        depth[None, None], darker.permute(2, 0, 1)[None])
