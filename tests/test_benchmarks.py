@@ -364,3 +364,6 @@ def test_quality_ranking_ranks_methods_and_correlates_with_the_truth(tmp_path, m
     out = capsys.readouterr().out
     assert "uri_psnr                     good (30.050) > middle (25.050) > bad (20.050)" in out
     assert "uri_uciqe                    +1.00" in out and "uri_uiqm                     -1.00" in out
+    monkeypatch.setattr(sys, "argv", ["quality_ranking.py", str(tmp_path), "--without", "bad"])
+    script.main()
+    assert "4 runs, 2 methods" in capsys.readouterr().out

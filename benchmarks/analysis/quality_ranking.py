@@ -1,6 +1,7 @@
 """Do the no-reference scores rank restorations as the clean truth does? Reads a grid's evaluated runs.
 
     python benchmarks/analysis/quality_ranking.py outputs/bench/underwater-quality-synthetic
+    python benchmarks/analysis/quality_ranking.py outputs/bench/underwater-quality-synthetic --without uw3dgs-paper
 
 For every run with a URI scored against a clean image (`uri_psnr`): the methods ranked by their mean over seeds of
 `uri_psnr` (the truth) and of each no-reference score (`uri_uciqe`, `uri_uiqm`, higher first, as papers read them;
@@ -39,11 +40,13 @@ def spearman(a: np.ndarray, b: np.ndarray) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("paths", nargs="+", type=Path, help="run folders or folders holding them (a grid's output)")
+    parser.add_argument("--without", nargs="*", default=[], metavar="METHOD",
+                        help="leave these methods' runs out (e.g. a failed restoration that would decide the order)")
     args = parser.parse_args()
     runs = []
     for run in find_runs(args.paths)[0]:
         data = read_results(run)
-        if data is not None and TRUTH in data["results"]:
+        if data is not None and TRUTH in data["results"] and data["method_name"] not in args.without:
             runs.append((data["method_name"], data["results"]))
     if len(runs) < 3:
         raise SystemExit(f"{len(runs)} evaluated run(s) with {TRUTH} under {args.paths}: too few to rank")
