@@ -75,6 +75,13 @@ def test_medium_subcommand_picks_the_registered_field_and_round_trips():
             parse_config(argv)
 
 
+def test_a_slot_of_a_kind_no_field_is_registered_for_says_so():
+    from uw3dgs.models.field_slot import field_choices
+
+    with pytest.raises(ValueError, match="no field of kind 'sonar' is registered"):
+        field_choices("sonar")
+
+
 def test_config_files_with_the_removed_field_name_options_still_load():
     """Runs saved while fields were chosen by a name option (`medium_field: medium-grid`) load: the name was a copy
     of what the field's `_type` says."""

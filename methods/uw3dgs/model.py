@@ -133,7 +133,7 @@ class UW3DGSModel(GaussianSplattingModel):
                                        mc.no_water_level)
             info(f"water: {self.water.line()}")
             if not self.water.little_water and max(*self.water.depth_d, *self.water.depth_b) < mc.water_check_below:
-                self.water = self._multiview_water(estimate, scene, train_indices)
+                self.water = self._multiview_water(self.water, estimate, scene, train_indices)
             if self.water.little_water and mc.collapse_without_water:
                 self.water_free.fill_(True)
                 info("water: uw3dgs renders without a medium here, as 3dgs does (the medium report is skipped; "
@@ -157,24 +157,24 @@ class UW3DGSModel(GaussianSplattingModel):
         with torch.no_grad():
             self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
-    def _multiview_water(self, estimate: MediumEstimate, scene: SceneData, train_indices: list[int]) -> WaterVerdict:
+    def _multiview_water(self, single: WaterVerdict, estimate: MediumEstimate, scene: SceneData,
+                         train_indices: list[int]) -> WaterVerdict:
         """The verdict from the multi-view fit (B_inf held at the estimate's) where it could fit, on beta_D's bootstrap
-        95% bound, taken for beta_B too; the single-image verdict (`self.water`) where it could not or where that still
+        95% bound, taken for beta_B too; the single-image verdict (`single`) where it could not or where that still
         shows water. beta_B's own fit is not used: backscatter saturated at every range the views see adds one colour
         to every surface, which the surfaces' own colours absorb, so it fits a dry scene as well as none; and water
         that scatters light also attenuates it (beam attenuation = absorption + scattering)."""
         cameras, images = [scene.cameras[i] for i in train_indices], [scene.images[i] for i in train_indices]
         fit = observe_and_estimate(scene.points, cameras, images, self.dataset_scale, self.config.medium.multiview,
                                    estimate.b_inf)
-        assert self.water is not None
         if fit.upper is None:
             info("water: the multi-view check could not fit (too few surfaces seen at several ranges)")
-            return self.water
+            return single
         beta_d = torch.tensor(fit.upper[0])
-        bound = water_verdict(beta_d, beta_d, self.water.far_range, self.water.level,
+        bound = water_verdict(beta_d, beta_d, single.far_range, single.level,
                               source="the multi-view fit (beta_D's 95% bound, for beta_B too)")
         info(f"water: {bound.line()}")
-        return bound if bound.little_water else self.water
+        return bound if bound.little_water else single
 
     def _combine_by_evidence(self, estimate: MediumEstimate, water: Tensor | None, scene: SceneData,
                              train_indices: list[int]) -> MediumEstimate:
