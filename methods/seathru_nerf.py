@@ -30,7 +30,7 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import ParamGroupConfig
 from uw3dgs.methods.tensorf import TensoRFModel, TensoRFModelConfig, cpu_method, tensorf_optimizers
-from uw3dgs.models.base import restored_image_metrics
+from uw3dgs.metrics.medium import restored_image_metrics
 from uw3dgs.options import check_number
 from uw3dgs.raymarch.compositing import composite_underwater
 from uw3dgs.raymarch.rays import RayBundle

@@ -57,7 +57,8 @@ def test_a_short_run_trains_resumes_bit_exact_evaluates_and_renders(method, tmp_
     summary = json.loads(out.read_text())["results"]
     assert summary["psnr"] > 10 and summary["depth_abs_rel"] is not None
     if method == "seathru-nerf":
-        for key in ("uri_psnr", "beta_d_r", "beta_b_g", "b_inf_b", "beta_d_rel_error", "b_inf_rel_error"):
+        for key in ("uri_psnr", "uri_uciqe", "uri_uiqm", "beta_d_r", "beta_b_g", "b_inf_b", "beta_d_rel_error",
+                    "b_inf_rel_error"):
             assert summary[key] is not None, key
 
     outputs = "uwi,uri,depth" if method == "seathru-nerf" else "uwi,depth"

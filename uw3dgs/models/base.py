@@ -30,19 +30,6 @@ class ModelConfig(InstantiateConfig):
     the same numbers to float rounding). The rasterizer is chosen by --model.raster.backend."""
 
 
-def restored_image_metrics(uri: Tensor, batch: Batch) -> dict[str, float | None]:
-    """`uri_psnr`, `uri_ssim`, `uri_lpips_*` (and `uri_psnr_covisible` where the batch has 'covisible') of a restored
-    image `uri` [H, W, 3] against the batch's 'clean_image' (scenes that know it); {} without one."""
-    if "clean_image" not in batch:
-        return {}
-    uri, clean = uri.detach().clamp(0, 1), batch["clean_image"]
-    metrics: dict[str, float | None] = {"uri_psnr": float(psnr(uri, clean)), "uri_ssim": float(ssim(uri, clean))}
-    metrics.update(lpips_metrics(uri, clean, prefix="uri_"))
-    if "covisible" in batch:
-        metrics["uri_psnr_covisible"] = float(psnr(uri, clean, batch["covisible"]))
-    return metrics
-
-
 class Model(nn.Module):
     """A scene representation plus how it renders, what it is trained with and what it reports.
 
