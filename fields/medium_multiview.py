@@ -420,9 +420,9 @@ def _subset(point: Tensor, num_points: int, max_observations: int, seed: int) ->
 
 def _spatial_disagreement(point: Tensor, color: Tensor, z: Tensor, weight: Tensor, positions: Tensor,
                           whole: MultiviewFit, config: MultiviewConfig) -> list[float] | None:
-    """[3] the largest |beta_D of one half - the other's| / `whole`'s over the halves of the points (ids `point` [M]
-    into positions [P, 3]) split at the median along each of their two main axes, each half fitted with B_inf held at
-    `whole`'s; None where a half has fewer than `min_span_points` points."""
+    """[3] the largest |beta_D of one half - the other's| (per unit of range) over the halves of the points (ids
+    `point` [M] into positions [P, 3]) split at the median along each of their two main axes, each half fitted with
+    B_inf held at `whole`'s; None where a half has fewer than `min_span_points` points."""
     disagreement = torch.zeros(3, dtype=torch.float64)
     for axis in principal_axes(positions):
         coord = positions @ axis.double()
@@ -434,11 +434,26 @@ def _spatial_disagreement(point: Tensor, color: Tensor, z: Tensor, weight: Tenso
             if len(ids) < config.min_span_points:
                 return None
             betas.append(fit_multiview(local, color[rows], z[rows], weight[rows], whole.b_inf, config).beta_d.double())
-        disagreement = torch.maximum(disagreement, (betas[0] - betas[1]).abs() / whole.beta_d.double().clamp_min(1e-9))
+        disagreement = torch.maximum(disagreement, (betas[0] - betas[1]).abs())
     return disagreement.tolist()
 
 
+RELATIVE_READABLE = 10.0
+"""Relative spreads and differences above this (1,000%) are printed in absolute units: near beta = 0 a ratio says
+nothing (a dry scene's beta_D of 1e-7 gave "halves 2907608263% apart")."""
+
+
+def _relative_or_absolute(relative: float, absolute: float, unit: str = " per unit") -> str:
+    """'12%' where the ratio is readable, else '0.0021 per unit' (the absolute value of the same difference; `unit`
+    '' for B_inf, a colour)."""
+    return f"{relative:.0%}" if relative <= RELATIVE_READABLE else f"{absolute:.2g}{unit}"
+
+
 # ------------------------------------------------------------------------------------------------ verdicts
+
+def _unit(name: str) -> str:
+    return "" if name == "B_inf" else " per unit"
+
 
 @dataclass
 class MultiviewCheck:
@@ -451,6 +466,12 @@ class MultiviewCheck:
     identified: bool
     reason: str
     """Why not (empty when identified)."""
+    half_width: float = 0.0
+    """The same half width in the value's units (per unit of range for the betas)."""
+
+    def spread_text(self) -> str:
+        """'+-12%', or '+-0.0021 per unit' where the value is so near 0 that the ratio says nothing."""
+        return "+-" + _relative_or_absolute(self.spread, self.half_width, _unit(self.name))
 
 
 @dataclass
@@ -472,6 +493,8 @@ class MultiviewEstimate:
     spatial_disagreement: list[float] | None = None
     """[3] the largest |beta_D of one half of the points - the other's| / the whole fit's, over the two main axes
     (None: not checked, no positions or too few points in a half)."""
+    spatial_difference: list[float] | None = None
+    """[3] the same difference in absolute units (per unit of range)."""
     varies_in_space: bool = False
     checks: list[MultiviewCheck] = field(default_factory=list)
     upper: list[list[float]] | None = None
@@ -485,12 +508,12 @@ class MultiviewEstimate:
         out = []
         for name in PARAMETERS:
             checks = [x for x in self.checks if x.name == name]
-            values = ", ".join(f"{x.value:.3f} +-{x.spread:.0%}" for x in checks)
+            values = ", ".join(f"{x.value:.3f} {x.spread_text()}" for x in checks)
             verdict = "identified by range diversity" if all(x.identified for x in checks) else "; ".join(
                 f"{x.channel} not identified: {x.reason}" for x in checks if not x.identified)
             out.append(f"multi-view {name} ({values}): {verdict}")
         if self.spatial_disagreement is not None:
-            halves = "/".join(f"{x:.0%}" for x in self.spatial_disagreement)
+            halves = self.halves_text()
             out.append(f"multi-view: halves of the scene give beta_D {halves} apart: "
                        f"{'varies in space' if self.varies_in_space else 'homogeneous within the tolerance'}")
         lo, mid, hi = self.span_ratio
@@ -498,6 +521,11 @@ class MultiviewEstimate:
                    f"ratio >= its threshold; span ratio {lo:.2f}/{mid:.2f}/{hi:.2f} (10/50/90%), median span "
                    f"{self.median_span:.2f}")
         return out
+
+    def halves_text(self) -> str:
+        """The halves' beta_D difference per channel, '12%/8%/5%' (of the whole fit's) or in absolute units."""
+        return "/".join(_relative_or_absolute(r, a) for r, a in zip(self.spatial_disagreement or [],
+                                                                   self.spatial_difference or [], strict=True))
 
     def to_json(self) -> dict:
         out = {k: v for k, v in asdict(self).items() if k != "fit"}
@@ -563,11 +591,15 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
     if positions is not None:
         where = torch.zeros(int(sub_ids.max()) + 1, 3, dtype=torch.float64)
         where[sub_ids] = positions.double()[ids[point[rows]][sub]]
-        result.spatial_disagreement = _spatial_disagreement(sub_ids, obs[1][sub], obs[2][sub], weights[sub], where,
-                                                            fit, config)
+        difference = _spatial_disagreement(sub_ids, obs[1][sub], obs[2][sub], weights[sub], where, fit, config)
+        if difference is not None:
+            result.spatial_difference = difference
+            result.spatial_disagreement = (torch.tensor(difference, dtype=torch.float64)
+                                           / fit.beta_d.double().clamp_min(1e-9)).tolist()
     lo, hi = torch.quantile(torch.stack(boot), torch.tensor([0.05, 0.95], dtype=torch.float64), dim=0)
     result.upper = torch.maximum(hi, values).tolist()
-    spread = (hi - lo) / 2 / values.abs().clamp_min(1e-9)
+    half_width = (hi - lo) / 2
+    spread = half_width / values.abs().clamp_min(1e-9)
     if result.spatial_disagreement is not None:
         result.varies_in_space = sum(d > config.spatial_tolerance and d > 2 * float(spread[0, c])
                                      for c, d in enumerate(result.spatial_disagreement)) >= config.spatial_min_channels
@@ -582,27 +614,29 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
             if span_points < config.min_span_points:
                 why.append(few)
             if float(spread[k, c]) > config.tolerance:
-                why.append(f"bootstrap spread +-{float(spread[k, c]):.0%} (> {config.tolerance:.0%})")
+                text = _relative_or_absolute(float(spread[k, c]), float(half_width[k, c]), _unit(name))
+                why.append(f"bootstrap spread +-{text} (> {config.tolerance:.0%})")
             depth = float(values[0, c]) * median_span  # the median point's span in optical depths of beta_D
             if name == "beta_D" and config.color_drift / max(depth, 1e-9) > config.tolerance:
+                moved = _relative_or_absolute(config.color_drift / max(depth, 1e-9),
+                                              config.color_drift / max(median_span, 1e-9))
                 why.append(f"the median point spans {depth:.2f} optical depths: a {config.color_drift:.0%} drift of "
-                           f"the surfaces' colours with range that is not the water's would move it by "
-                           f"{config.color_drift / max(depth, 1e-9):.0%} (> {config.tolerance:.0%})")
+                           f"the surfaces' colours with range that is not the water's would move it by {moved} "
+                           f"(> {config.tolerance:.0%})")
             # the backscatter curve is what the direct signal is read after: a channel whose curve is not pinned
             # leaves its beta_D unpinned too, whatever its own bootstrap says (one valley can hold it still)
             leans = {"B_inf": (), "beta_B": ("B_inf",), "beta_D": ("B_inf", "beta_B")}[name]
             weak = [other for other in leans
                     if not (other == "B_inf" and held[c]) and not checks[(other, c)].identified]
             if name != "B_inf" and result.varies_in_space:
-                why.append("varies in space: the halves of the scene give beta_D "
-                           f"{'/'.join(f'{x:.0%}' for x in result.spatial_disagreement)} apart (> "
+                why.append(f"varies in space: the halves of the scene give beta_D {result.halves_text()} apart (> "
                            f"{config.spatial_tolerance:.0%} in {config.spatial_min_channels}+ channels); a homogeneous "
                            "estimate is an average")
             if weak and not why:
                 why.append(f"fitted with a {' and '.join(weak)} that is not identified: the backscatter it leaves "
                            "moves with it")
             checks[(name, c)] = MultiviewCheck(name, CHANNELS[c], float(values[k, c]), float(spread[k, c]),
-                                               not why, "; ".join(why))
+                                               not why, "; ".join(why), float(half_width[k, c]))
     result.checks = [checks[(name, c)] for name in PARAMETERS for c in range(3)]
     return result
 

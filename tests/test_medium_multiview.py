@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from types import SimpleNamespace
 
 import numpy as np
@@ -39,14 +40,15 @@ BETA_D, BETA_B, B_INF = (0.30, 0.10, 0.07), (0.24, 0.20, 0.17), (0.08, 0.30, 0.4
 
 
 def surveyed_points(num_points: int = 500, views: int = 5, span: tuple[float, float] = (1.5, 3.0),
-                    noise: float = 0.01, outliers: float = 0.05, single: float = 0.2, seed: int = 0):
+                    noise: float = 0.01, outliers: float = 0.05, single: float = 0.2, seed: int = 0,
+                    medium: tuple = (BETA_D, BETA_B, B_INF)):
     """Observations of points with known clean colours in [0.1, 0.8] (dark, not black) through a known medium:
     each point seen `views` times at ranges from near (3-8 units) to near x its span ratio (`span`), a `single`
     share of them at one range only; Gaussian noise, an `outliers` share of observations replaced by random
     colours, 8-bit rounding. Returns (point ids [M], colours [M, 3], ranges [M], whether the point has one range
     [P])."""
     g = torch.Generator().manual_seed(seed)
-    bd, bb, b = (torch.tensor(x, dtype=torch.float64) for x in (BETA_D, BETA_B, B_INF))
+    bd, bb, b = (torch.tensor(x, dtype=torch.float64) for x in medium)
     clean = 0.1 + 0.7 * torch.rand(num_points, 3, generator=g, dtype=torch.float64)
     near = 3 + 5 * torch.rand(num_points, generator=g, dtype=torch.float64)
     ratio = span[0] + (span[1] - span[0]) * torch.rand(num_points, generator=g, dtype=torch.float64)
@@ -155,6 +157,19 @@ def test_a_medium_that_thickens_across_the_scene_is_flagged_and_homogeneous_wate
     assert varying.varies_in_space
     assert not any(c.identified for c in varying.checks if c.name != "B_inf")
     assert all("varies in space" in c.reason for c in varying.checks if c.name != "B_inf")
+
+
+def test_dry_points_are_reported_in_absolute_units_not_as_exploding_ratios():
+    """No water (beta = 0): the fit's betas are near 0, where a spread or a difference of the halves relative to them
+    is meaningless (the fox read "2907608263% apart"); the lines give them per unit of range instead."""
+    point, color, z, _ = surveyed_points(300, single=0.0, outliers=0.0, medium=((0.0,) * 3, (0.0,) * 3, B_INF))
+    positions = torch.rand(300, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    estimate = multiview_estimate(point, color, z, MultiviewConfig(resamples=3), positions=positions)
+    assert max(estimate.fit.beta_d.tolist()) < 0.01
+    text = "\n".join(estimate.lines() + [c.reason for c in estimate.checks])
+    assert "per unit" in text
+    percents = [float(p) for p in re.findall(r"(\d+)%", text)]
+    assert max(percents) <= 1000, text  # RELATIVE_READABLE: bigger ratios are written in absolute units
 
 
 def test_points_seen_at_one_range_only_give_no_fit_and_say_why():
