@@ -6,7 +6,10 @@ Three modes pair a plane with a line (axes XY x Z, XZ x Y, YZ x X). At a point x
     features = B [ P^c_{m,r}(x_plane) L^c_{m,r}(x_line) ]_{m,r}    (B: the appearance basis, no bias)
     colour = sigmoid(MLP([features, viewdir, PE(features), PE(viewdir)]))    (shading 'mlp', `MLPRender_Fea`)
     colour = relu(sum_k features[c, k] Y_k(viewdir) + 0.5), k < 9              (shading 'sh', `SHRender`)
-with bilinear planes and linear lines (grid_sample, align_corners=True), as the official code reads them.
+with bilinear planes and linear lines (grid_sample, align_corners=True), as the official code reads them. On CPU
+tensors of float32 or float64 the reads are the compiled kernel's (`uw3dgs/kernels/vm_field.py`, `vm_products`) under
+`--model.kernels compiled` (the default); `vm_products` below, with grid_sample, is its reference and the path on
+CUDA.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from uw3dgs.config import Target, target
+from uw3dgs.kernels import vm_field
+from uw3dgs.kernels.policy import Kernels, use_compiled
 from uw3dgs.options import OptionError, check_number
 from uw3dgs.raymarch.field import RadianceField, RadianceFieldConfig
 from uw3dgs.registry import FieldSpec
@@ -29,6 +34,8 @@ PLANE_AXES = ((0, 1), (0, 2), (1, 2))
 """TensoRF's `matMode`: the two axes of each mode's plane (first along the plane's width)."""
 LINE_AXES = (2, 1, 0)
 """TensoRF's `vecMode`: the axis of each mode's line."""
+COMPILED_AXES = tuple((b, a, c) for (a, b), c in zip(PLANE_AXES, LINE_AXES, strict=True))
+"""Each mode's (plane row, plane column, line) axes, as the compiled read takes them (planes: [R, G_b, G_a])."""
 SH_DEGREE = 2
 """TensoRF's `SHRender` evaluates degree-2 harmonics: 9 coefficients per channel, 27 appearance features."""
 
@@ -106,11 +113,14 @@ class TensoRFFieldConfig(RadianceFieldConfig):
 
 
 class TensoRFField(RadianceField):
-    """VM-split density and appearance grids over the box [lo, hi] with `resolution` (X, Y, Z) vertices."""
+    """VM-split density and appearance grids over the box [lo, hi] with `resolution` (X, Y, Z) vertices; `kernels`
+    picks the compiled reads or grid_sample (the model's `--model.kernels`)."""
 
-    def __init__(self, config: TensoRFFieldConfig, lo: Tensor, hi: Tensor, resolution: tuple[int, int, int]):
+    def __init__(self, config: TensoRFFieldConfig, lo: Tensor, hi: Tensor, resolution: tuple[int, int, int],
+                 kernels: Kernels = "compiled"):
         super().__init__()
         self.config = config
+        self.kernels = kernels
         self.register_buffer("lo", lo.detach().clone().float())
         self.register_buffer("hi", hi.detach().clone().float())
         self.density_planes, self.density_lines = self._factors(config.density_components, resolution)
@@ -135,8 +145,17 @@ class TensoRFField(RadianceField):
     def normalize(self, x: Tensor) -> Tensor:
         return (x - self.lo) / (self.hi - self.lo) * 2 - 1
 
+    def products(self, planes: nn.ParameterList, lines: nn.ParameterList, u: Tensor, summed: bool) -> Tensor:
+        """The VM products at points `u` [N, 3] in [-1, 1]^3: [N, sum_m R_m] mode by mode, or with `summed` their sum
+        [N]; compiled where `kernels` allows, else grid_sample."""
+        if use_compiled(self.kernels, u):
+            return vm_field.vm_products(u, [p[0] for p in planes], [q[0, :, :, 0] for q in lines], COMPILED_AXES,
+                                        summed)
+        products = vm_products(planes, lines, u)
+        return sum(p.sum(dim=-1) for p in products) if summed else torch.cat(products, dim=-1)
+
     def density_feature(self, u: Tensor) -> Tensor:
-        return sum(p.sum(dim=-1) for p in vm_products(self.density_planes, self.density_lines, u))
+        return self.products(self.density_planes, self.density_lines, u, summed=True)
 
     def activate(self, feature: Tensor) -> Tensor:
         if self.config.density_activation == "relu":
@@ -148,7 +167,7 @@ class TensoRFField(RadianceField):
 
     def color(self, x: Tensor, viewdirs: Tensor) -> Tensor:
         c = self.config
-        features = self.basis(torch.cat(vm_products(self.app_planes, self.app_lines, self.normalize(x)), dim=-1))
+        features = self.basis(self.products(self.app_planes, self.app_lines, self.normalize(x), summed=False))
         if self.mlp is None:
             harmonics = sh_basis(SH_DEGREE, viewdirs)  # [N, 9]
             return torch.relu((features.view(len(x), 3, -1) * harmonics[:, None, :]).sum(-1) + 0.5)

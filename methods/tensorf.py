@@ -141,7 +141,7 @@ class TensoRFModel(Model):
             lo, hi = scene_box(scene.points, config.box_quantile, config.box_margin)
             self.sampler = BoxSampler(lo, hi, float(scene.near), float(scene.far))
         resolution = voxels_to_resolution(config.voxels_init, lo, hi)
-        self.field: RadianceField = config.radiance.setup(lo=lo, hi=hi, resolution=resolution)
+        self.field: RadianceField = config.radiance.setup(lo=lo, hi=hi, resolution=resolution, kernels=config.kernels)
         self.occupancy = OccupancyGrid(lo, hi)
         self.max_num_iterations = 1
         """The run's length (set with the training callbacks): the TV weights decay over it."""

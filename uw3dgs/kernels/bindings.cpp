@@ -47,6 +47,11 @@ std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std:
                                                            std::vector<torch::Tensor> basis,
                                                            std::vector<torch::Tensor> bias, torch::Tensor pre,
                                                            torch::Tensor grad_out);
+torch::Tensor vm_products_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
+                                  std::vector<int64_t> axes, bool summed);
+std::vector<torch::Tensor> vm_products_backward(torch::Tensor u, std::vector<torch::Tensor> planes,
+                                                std::vector<torch::Tensor> lines, std::vector<int64_t> axes,
+                                                bool summed, torch::Tensor grad_out);
 torch::Tensor sh_colors_forward(torch::Tensor means, torch::Tensor center, torch::Tensor dc, torch::Tensor rest,
                                 int64_t degree);
 std::vector<torch::Tensor> sh_colors_backward(torch::Tensor means, torch::Tensor center, torch::Tensor dc,
@@ -88,6 +93,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("num_threads", &num_threads);
   m.def("vm_fields_forward", &vm_fields_forward);
   m.def("vm_fields_backward", &vm_fields_backward);
+  m.def("vm_products_forward", &vm_products_forward);
+  m.def("vm_products_backward", &vm_products_backward);
   m.def("sh_colors_forward", &sh_colors_forward);
   m.def("sh_colors_backward", &sh_colors_backward);
   m.def("floater_mlp_forward", &floater_mlp_forward);

@@ -550,3 +550,264 @@ std::vector<std::vector<torch::Tensor>> vm_fields_backward(torch::Tensor u, std:
   });
   return {g_u, g_planes, g_lines, g_basis, g_bias};
 }
+
+// VM products: the same plane and line reads with a rank per mode and a box-shaped grid (a size per axis), without
+// the basis and the softplus: per point, the products P_{m,r}(u) L_{m,r}(u) of every mode m and component r,
+// concatenated mode by mode [N, sum_m R_m], or summed [N] (TensoRF's appearance features before its basis, and its
+// density feature: fields/tensorf.py). Each mode names the axes of u along its plane's rows and columns and its
+// line, so the one read serves either axis convention. The factors are copied into blocks of at most kBlock
+// components, each block channel-last (cell by cell, the block's components contiguous), so that a point's read of
+// a block is one contiguous run per cell. The backward gives the planes' and lines' gradients (the points get none:
+// TensoRF's samples are not trained); each block's gradients are a separate region, summed by one thread in point
+// order: bitwise identical results whatever the thread count, with no per-thread copies of the (large) grids.
+namespace {
+
+constexpr int64_t kBlock = 16;
+
+// One mode's factors in blocks (see above): the element (component r, cell c) of a block starting at component r0
+// of width w sits at r0 * cells + c * w + (r - r0), for the plane and, with cells = len, the line.
+template <typename T>
+struct BlockedMode {
+  std::vector<T> plane, line;
+  int64_t R, rows, cols, len, offset;  // offset: the mode's first column of the concatenated products
+  int64_t row_axis, col_axis, line_axis;
+};
+
+struct Block {
+  int64_t mode, r0, w;
+};
+
+std::vector<Block> blocks_of(const std::vector<torch::Tensor>& planes) {
+  std::vector<Block> blocks;
+  for (int64_t m = 0; m < static_cast<int64_t>(planes.size()); ++m)
+    for (int64_t r0 = 0; r0 < planes[m].size(0); r0 += kBlock)
+      blocks.push_back({m, r0, std::min(kBlock, planes[m].size(0) - r0)});
+  return blocks;
+}
+
+// Channel-first [R, cells] <-> blocked, one block at a time (TO_BLOCKED: src channel-first, dst blocked).
+template <typename T, bool TO_BLOCKED>
+inline void reorder_block(const T* src, T* dst, int64_t cells, int64_t r0, int64_t w) {
+  for (int64_t c = 0; c < cells; ++c)
+    for (int64_t r = 0; r < w; ++r) {
+      const int64_t first = (r0 + r) * cells + c, blocked = r0 * cells + c * w + r;
+      if constexpr (TO_BLOCKED)
+        dst[blocked] = src[first];
+      else
+        dst[first] = src[blocked];
+    }
+}
+
+int64_t factor_size(const std::vector<torch::Tensor>& planes, const std::vector<torch::Tensor>& lines) {
+  int64_t size = 0;
+  for (size_t m = 0; m < planes.size(); ++m) size += planes[m].numel() + lines[m].numel();
+  return size;
+}
+
+template <typename T>
+std::vector<BlockedMode<T>> blocked_modes(const std::vector<torch::Tensor>& planes,
+                                          const std::vector<torch::Tensor>& lines, const std::vector<int64_t>& axes,
+                                          const std::vector<Block>& blocks) {
+  std::vector<BlockedMode<T>> modes;
+  int64_t offset = 0;
+  for (size_t m = 0; m < planes.size(); ++m) {
+    const int64_t R = planes[m].size(0), rows = planes[m].size(1), cols = planes[m].size(2), len = lines[m].size(1);
+    modes.push_back({std::vector<T>(R * rows * cols), std::vector<T>(R * len), R, rows, cols, len, offset,
+                     axes[3 * m], axes[3 * m + 1], axes[3 * m + 2]});
+    offset += R;
+  }
+  const int64_t nb = blocks.size(), size = factor_size(planes, lines);
+#pragma omp parallel for schedule(dynamic, 1) if (nb > 1 && size >= kChunkPoints)
+  for (int64_t b = 0; b < nb; ++b) {
+    BlockedMode<T>& md = modes[blocks[b].mode];
+    reorder_block<T, true>(planes[blocks[b].mode].data_ptr<T>(), md.plane.data(), md.rows * md.cols, blocks[b].r0,
+                           blocks[b].w);
+    reorder_block<T, true>(lines[blocks[b].mode].data_ptr<T>(), md.line.data(), md.len, blocks[b].r0, blocks[b].w);
+  }
+  return modes;
+}
+
+// A mode's cells at point x [3]: plane row, plane column, line.
+template <typename T>
+struct ModeCells {
+  Axis<T> row, col, lin;
+};
+
+template <typename T>
+inline ModeCells<T> mode_cells(const T* x, const BlockedMode<T>& md) {
+  return {axis(x[md.row_axis], md.rows), axis(x[md.col_axis], md.cols), axis(x[md.line_axis], md.len)};
+}
+
+// Plane values pv [w] and line values lv [w] of one block at located cells.
+template <typename T>
+inline void read_block(const ModeCells<T>& mc, const BlockedMode<T>& md, int64_t r0, int64_t w, T* pv, T* lv) {
+  for (int64_t r = 0; r < w; ++r) pv[r] = 0, lv[r] = 0;
+  const T* plane = md.plane.data() + r0 * md.rows * md.cols;
+  for (int dy = 0; dy < 2; ++dy)
+    for (int dx = 0; dx < 2; ++dx) {
+      if (!mc.row.in[dy] || !mc.col.in[dx]) continue;
+      const T wt = mc.row.w[dy] * mc.col.w[dx];
+      const T* src = plane + ((mc.row.i0 + dy) * md.cols + mc.col.i0 + dx) * w;
+#pragma omp simd
+      for (int64_t r = 0; r < w; ++r) pv[r] += wt * src[r];
+    }
+  const T* line = md.line.data() + r0 * md.len;
+  for (int dz = 0; dz < 2; ++dz) {
+    if (!mc.lin.in[dz]) continue;
+    const T* src = line + (mc.lin.i0 + dz) * w;
+#pragma omp simd
+    for (int64_t r = 0; r < w; ++r) lv[r] += mc.lin.w[dz] * src[r];
+  }
+}
+
+template <typename T>
+void products_forward(const T* u, int64_t n, const std::vector<BlockedMode<T>>& modes, bool summed, int64_t K,
+                      T* out) {
+#pragma omp parallel for schedule(static) if (n >= kChunkPoints)
+  for (int64_t i = 0; i < n; ++i) {
+    T pv[kBlock], lv[kBlock];
+    T total = 0;
+    for (const BlockedMode<T>& md : modes) {
+      const ModeCells<T> mc = mode_cells(u + 3 * i, md);
+      for (int64_t r0 = 0; r0 < md.R; r0 += kBlock) {
+        const int64_t w = std::min(kBlock, md.R - r0);
+        read_block(mc, md, r0, w, pv, lv);
+        if (summed) {
+          for (int64_t r = 0; r < w; ++r) total += pv[r] * lv[r];
+        } else {
+          T* o = out + i * K + md.offset + r0;
+#pragma omp simd
+          for (int64_t r = 0; r < w; ++r) o[r] = pv[r] * lv[r];
+        }
+      }
+    }
+    if (summed) out[i] = total;
+  }
+}
+
+// Gradients of the blocked factors (gp, gl: the modes' layouts, zeroed) given d loss / d products `go` ([N, K], or
+// [N] when summed). Each block is one task: its points in order, its own region of gp and gl.
+template <typename T>
+void products_backward(const T* u, int64_t n, const std::vector<BlockedMode<T>>& modes,
+                       const std::vector<Block>& blocks, bool summed, int64_t K, const T* go,
+                       std::vector<std::vector<T>>& gp, std::vector<std::vector<T>>& gl) {
+  const int64_t nb = blocks.size();
+#pragma omp parallel for schedule(dynamic, 1) if (nb > 1 && n >= kChunkPoints)
+  for (int64_t b = 0; b < nb; ++b) {
+    const BlockedMode<T>& md = modes[blocks[b].mode];
+    const int64_t r0 = blocks[b].r0, w = blocks[b].w;
+    T* plane_grad = gp[blocks[b].mode].data() + r0 * md.rows * md.cols;
+    T* line_grad = gl[blocks[b].mode].data() + r0 * md.len;
+    T pv[kBlock], lv[kBlock], gpv[kBlock], glv[kBlock];
+    for (int64_t i = 0; i < n; ++i) {
+      const ModeCells<T> mc = mode_cells(u + 3 * i, md);
+      read_block(mc, md, r0, w, pv, lv);
+      if (summed) {
+        const T g = go[i];
+        for (int64_t r = 0; r < w; ++r) gpv[r] = g * lv[r], glv[r] = g * pv[r];
+      } else {
+        const T* g = go + i * K + md.offset + r0;
+        for (int64_t r = 0; r < w; ++r) gpv[r] = g[r] * lv[r], glv[r] = g[r] * pv[r];
+      }
+      for (int dy = 0; dy < 2; ++dy)
+        for (int dx = 0; dx < 2; ++dx) {
+          if (!mc.row.in[dy] || !mc.col.in[dx]) continue;
+          const T wt = mc.row.w[dy] * mc.col.w[dx];
+          T* dst = plane_grad + ((mc.row.i0 + dy) * md.cols + mc.col.i0 + dx) * w;
+#pragma omp simd
+          for (int64_t r = 0; r < w; ++r) dst[r] += wt * gpv[r];
+        }
+      for (int dz = 0; dz < 2; ++dz) {
+        if (!mc.lin.in[dz]) continue;
+        T* dst = line_grad + (mc.lin.i0 + dz) * w;
+#pragma omp simd
+        for (int64_t r = 0; r < w; ++r) dst[r] += mc.lin.w[dz] * glv[r];
+      }
+    }
+  }
+}
+
+// The blocked gradients gp, gl back to the factors' layouts: grads = (planes..., lines...).
+template <typename T>
+void unblock_grads(const std::vector<BlockedMode<T>>& modes, const std::vector<Block>& blocks,
+                   const std::vector<std::vector<T>>& gp, const std::vector<std::vector<T>>& gl,
+                   std::vector<torch::Tensor>& grads) {
+  const int64_t nb = blocks.size(), M = modes.size();
+  int64_t size = 0;
+  for (const BlockedMode<T>& md : modes) size += md.plane.size() + md.line.size();
+#pragma omp parallel for schedule(dynamic, 1) if (nb > 1 && size >= kChunkPoints)
+  for (int64_t b = 0; b < nb; ++b) {
+    const int64_t m = blocks[b].mode;
+    reorder_block<T, false>(gp[m].data(), grads[m].data_ptr<T>(), modes[m].rows * modes[m].cols, blocks[b].r0,
+                            blocks[b].w);
+    reorder_block<T, false>(gl[m].data(), grads[M + m].data_ptr<T>(), modes[m].len, blocks[b].r0, blocks[b].w);
+  }
+}
+
+void check_products(const torch::Tensor& u, const std::vector<torch::Tensor>& planes,
+                    const std::vector<torch::Tensor>& lines, const std::vector<int64_t>& axes) {
+  const size_t M = planes.size();
+  TORCH_CHECK(M >= 1 && lines.size() == M && axes.size() == 3 * M,
+              "vm_products: one plane, line and (row, column, line) axis triple per mode");
+  TORCH_CHECK(u.dim() == 2 && u.size(1) == 3, "vm_products: points must be [N, 3]");
+  std::vector<const torch::Tensor*> all{&u};
+  for (size_t m = 0; m < M; ++m) {
+    all.insert(all.end(), {&planes[m], &lines[m]});
+    TORCH_CHECK(planes[m].dim() == 3 && lines[m].dim() == 2 && lines[m].size(0) == planes[m].size(0),
+                "vm_products: mode ", m, " needs a plane [R, rows, columns] and a line [R, length] of one rank R");
+    TORCH_CHECK(planes[m].numel() > 0 && lines[m].numel() > 0, "vm_products: mode ", m, " is empty");
+  }
+  for (int64_t a : axes) TORCH_CHECK(a >= 0 && a < 3, "vm_products: axes must be 0, 1 or 2");
+  for (const torch::Tensor* t : all) {
+    TORCH_CHECK(t->device().is_cpu() && t->is_contiguous(), "vm_products: inputs must be contiguous CPU tensors");
+    TORCH_CHECK(t->scalar_type() == u.scalar_type(), "vm_products: inputs must share one dtype");
+  }
+}
+
+int64_t total_rank(const std::vector<torch::Tensor>& planes) {
+  int64_t K = 0;
+  for (const torch::Tensor& p : planes) K += p.size(0);
+  return K;
+}
+
+}  // namespace
+
+// The products P_{m,r}(u) L_{m,r}(u) at points u [N, 3] in [-1, 1], mode m's plane [R_m, rows, columns] read
+// bilinearly at (u[axes[3m]], u[axes[3m + 1]]) and its line [R_m, length] linearly at u[axes[3m + 2]]
+// (grid_sample's align_corners=True coordinates, zero outside): [N, sum_m R_m] mode by mode, or their sum [N].
+torch::Tensor vm_products_forward(torch::Tensor u, std::vector<torch::Tensor> planes, std::vector<torch::Tensor> lines,
+                                  std::vector<int64_t> axes, bool summed) {
+  check_products(u, planes, lines, axes);
+  const int64_t K = total_rank(planes);
+  auto out = summed ? torch::empty({u.size(0)}, u.options()) : torch::empty({u.size(0), K}, u.options());
+  AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "vm_products_forward", [&] {
+    const auto modes = blocked_modes<scalar_t>(planes, lines, axes, blocks_of(planes));
+    products_forward<scalar_t>(u.data_ptr<scalar_t>(), u.size(0), modes, summed, K, out.data_ptr<scalar_t>());
+  });
+  return out;
+}
+
+// (d planes..., d lines...) of every mode, in the inputs' layouts, given grad_out (vm_products_forward's shape).
+std::vector<torch::Tensor> vm_products_backward(torch::Tensor u, std::vector<torch::Tensor> planes,
+                                                std::vector<torch::Tensor> lines, std::vector<int64_t> axes,
+                                                bool summed, torch::Tensor grad_out) {
+  check_products(u, planes, lines, axes);
+  const int64_t K = total_rank(planes), n = u.size(0);
+  TORCH_CHECK(grad_out.is_contiguous() && grad_out.scalar_type() == u.scalar_type() &&
+                  (summed ? grad_out.dim() == 1 : grad_out.dim() == 2 && grad_out.size(1) == K) &&
+                  grad_out.size(0) == n,
+              "vm_products: grad_out must be a contiguous tensor of the products' shape and the points' dtype");
+  std::vector<torch::Tensor> grads;
+  for (const auto* factors : {&planes, &lines})
+    for (const torch::Tensor& t : *factors) grads.push_back(torch::empty_like(t));
+  AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "vm_products_backward", [&] {
+    const auto blocks = blocks_of(planes);
+    const auto modes = blocked_modes<scalar_t>(planes, lines, axes, blocks);
+    std::vector<std::vector<scalar_t>> gp, gl;
+    for (const auto& md : modes) gp.emplace_back(md.plane.size(), 0), gl.emplace_back(md.line.size(), 0);
+    products_backward<scalar_t>(u.data_ptr<scalar_t>(), n, modes, blocks, summed, K,
+                                grad_out.data_ptr<scalar_t>(), gp, gl);
+    unblock_grads<scalar_t>(modes, blocks, gp, gl, grads);
+  });
+  return grads;
+}

@@ -25,9 +25,10 @@ class ModelConfig(InstantiateConfig):
     _target: Target = target(lambda: Model)
     kernels: Kernels = "compiled"
     """The compiled CPU kernels or their PyTorch references for every part of the model that has both (colours, the
-    medium's reads, SSIM of the loss, the method's own losses and passes): 'compiled' = compiled where the tensors are
-    CPU float32/float64 and the module builds, PyTorch elsewhere (CUDA); 'torch' = PyTorch everywhere (the reference;
-    the same numbers to float rounding). The rasterizer is chosen by --model.raster.backend."""
+    medium's and the radiance field's VM reads, SSIM of the loss, the method's own losses and passes): 'compiled' =
+    compiled where the tensors are CPU float32/float64 and the module builds, PyTorch elsewhere (CUDA); 'torch' =
+    PyTorch everywhere (the reference; the same numbers to float rounding). The rasterizer is chosen by
+    --model.raster.backend."""
 
 
 class Model(nn.Module):

@@ -1,8 +1,9 @@
 """The scene field a ray-marching method renders: density and colour at points of a box (registry kind 'radiance').
 
 A field plugin registers `FieldSpec(name, description, config, kind="radiance")` under `uw3dgs.fields`; its config
-derives from `RadianceFieldConfig` and is built with `setup(lo=[3], hi=[3], resolution=(X, Y, Z))`: the box it covers,
-in the space the method's sampler puts its points in (the world, or NDC), and the grid size a grid field starts at.
+derives from `RadianceFieldConfig` and is built with `setup(lo=[3], hi=[3], resolution=(X, Y, Z), kernels=...)`: the box
+it covers, in the space the method's sampler puts its points in (the world, or NDC), the grid size a grid field starts
+at, and the model's `--model.kernels` policy (a field with compiled reads follows it; others may ignore it).
 A grid field also implements the optional grid hooks (`resolution`, `upsample`, `shrink`, `regularizers`); a field
 without a grid keeps the defaults.
 """
@@ -18,7 +19,7 @@ from uw3dgs.config import InstantiateConfig
 
 @dataclass(frozen=True)
 class RadianceFieldConfig(InstantiateConfig):
-    """A radiance field's knobs; `setup(lo=..., hi=..., resolution=...)` builds it over the box [lo, hi]."""
+    """A radiance field's knobs; `setup(lo=..., hi=..., resolution=..., kernels=...)` builds it over [lo, hi]."""
 
 
 class RadianceField(nn.Module):
