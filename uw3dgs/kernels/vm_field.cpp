@@ -8,7 +8,8 @@
 // registers (Lanes16). The forward also returns the pre-activations, so the backward takes softplus's derivative
 // in one vectorised pass and recomputes only a point's reads, not its [3R] features. Factor gradients are summed
 // per chunk of points, the chunks fixed by N alone, and the chunks reduced in order: bitwise identical results run
-// to run and whatever the thread count.
+// to run and whatever the thread count. The same reads with a rank per mode over box-shaped grids, as plain products
+// for TensoRF's field (`vm_products_forward` / `vm_products_backward`), follow at the end of the file.
 #include <torch/extension.h>
 
 #include "exp_f32.h"
@@ -19,6 +20,7 @@
 #include <cstdint>
 #include <cstring>
 #include <memory>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -638,9 +640,23 @@ inline ModeCells<T> mode_cells(const T* x, const BlockedMode<T>& md) {
   return {axis(x[md.row_axis], md.rows), axis(x[md.col_axis], md.cols), axis(x[md.line_axis], md.len)};
 }
 
-// Plane values pv [w] and line values lv [w] of one block at located cells.
-template <typename T>
-inline void read_block(const ModeCells<T>& mc, const BlockedMode<T>& md, int64_t r0, int64_t w, T* pv, T* lv) {
+// Calls f(std::integral_constant<int64_t, W>) with W = w for the block widths TensoRF's ranks give (16, 12, 8, 4),
+// whose loops the compiler then unrolls and vectorises, and W = 0 (the width known only at run time) otherwise.
+template <typename F>
+inline void with_width(int64_t w, F&& f) {
+  switch (w) {
+    case 16: f(std::integral_constant<int64_t, 16>{}); break;
+    case 12: f(std::integral_constant<int64_t, 12>{}); break;
+    case 8: f(std::integral_constant<int64_t, 8>{}); break;
+    case 4: f(std::integral_constant<int64_t, 4>{}); break;
+    default: f(std::integral_constant<int64_t, 0>{});
+  }
+}
+
+// Plane values pv [w] and line values lv [w] of one block at located cells (W: w if known at compile time, else 0).
+template <typename T, int64_t W>
+inline void read_block(const ModeCells<T>& mc, const BlockedMode<T>& md, int64_t r0, int64_t w_run, T* pv, T* lv) {
+  const int64_t w = W ? W : w_run;
   for (int64_t r = 0; r < w; ++r) pv[r] = 0, lv[r] = 0;
   const T* plane = md.plane.data() + r0 * md.rows * md.cols;
   for (int dy = 0; dy < 2; ++dy)
@@ -660,28 +676,68 @@ inline void read_block(const ModeCells<T>& mc, const BlockedMode<T>& md, int64_t
   }
 }
 
-template <typename T>
-void products_forward(const T* u, int64_t n, const std::vector<BlockedMode<T>>& modes, bool summed, int64_t K,
-                      T* out) {
+// One block's products at every point: written to its columns of out [N, K], or added to out [N] (summed).
+template <typename T, int64_t W>
+void block_forward(const T* u, int64_t n, const BlockedMode<T>& md, int64_t r0, int64_t w_run, bool summed, int64_t K,
+                   T* out) {
+  const int64_t w = W ? W : w_run;
 #pragma omp parallel for schedule(static) if (n >= kChunkPoints)
   for (int64_t i = 0; i < n; ++i) {
     T pv[kBlock], lv[kBlock];
-    T total = 0;
-    for (const BlockedMode<T>& md : modes) {
-      const ModeCells<T> mc = mode_cells(u + 3 * i, md);
-      for (int64_t r0 = 0; r0 < md.R; r0 += kBlock) {
-        const int64_t w = std::min(kBlock, md.R - r0);
-        read_block(mc, md, r0, w, pv, lv);
-        if (summed) {
-          for (int64_t r = 0; r < w; ++r) total += pv[r] * lv[r];
-        } else {
-          T* o = out + i * K + md.offset + r0;
+    read_block<T, W>(mode_cells(u + 3 * i, md), md, r0, w, pv, lv);
+    if (summed) {
+      T total = out[i];
+      for (int64_t r = 0; r < w; ++r) total += pv[r] * lv[r];
+      out[i] = total;
+    } else {
+      T* o = out + i * K + md.offset + r0;
 #pragma omp simd
-          for (int64_t r = 0; r < w; ++r) o[r] = pv[r] * lv[r];
-        }
-      }
+      for (int64_t r = 0; r < w; ++r) o[r] = pv[r] * lv[r];
     }
-    if (summed) out[i] = total;
+  }
+}
+
+// Block by block (each block's factors stay in cache while all points read them), the points split among threads.
+template <typename T>
+void products_forward(const T* u, int64_t n, const std::vector<BlockedMode<T>>& modes,
+                      const std::vector<Block>& blocks, bool summed, int64_t K, T* out) {
+  if (summed) std::fill(out, out + n, T(0));
+  for (const Block& b : blocks)
+    with_width(b.w, [&](auto W) { block_forward<T, W()>(u, n, modes[b.mode], b.r0, b.w, summed, K, out); });
+}
+
+// One block's share of the backward: its points in order, into its own region of the gradients.
+template <typename T, int64_t W>
+void block_backward(const T* u, int64_t n, const BlockedMode<T>& md, int64_t r0, int64_t w_run, bool summed,
+                    int64_t K, const T* go, T* plane_grad, T* line_grad) {
+  const int64_t w = W ? W : w_run;
+  T pv[kBlock], lv[kBlock], gpv[kBlock], glv[kBlock];
+  for (int64_t i = 0; i < n; ++i) {
+    const ModeCells<T> mc = mode_cells(u + 3 * i, md);
+    read_block<T, W>(mc, md, r0, w, pv, lv);
+    if (summed) {
+      const T g = go[i];
+#pragma omp simd
+      for (int64_t r = 0; r < w; ++r) gpv[r] = g * lv[r], glv[r] = g * pv[r];
+    } else {
+      const T* g = go + i * K + md.offset + r0;
+#pragma omp simd
+      for (int64_t r = 0; r < w; ++r) gpv[r] = g[r] * lv[r], glv[r] = g[r] * pv[r];
+    }
+    for (int dy = 0; dy < 2; ++dy)
+      for (int dx = 0; dx < 2; ++dx) {
+        if (!mc.row.in[dy] || !mc.col.in[dx]) continue;
+        const T wt = mc.row.w[dy] * mc.col.w[dx];
+        T* dst = plane_grad + ((mc.row.i0 + dy) * md.cols + mc.col.i0 + dx) * w;
+#pragma omp simd
+        for (int64_t r = 0; r < w; ++r) dst[r] += wt * gpv[r];
+      }
+    for (int dz = 0; dz < 2; ++dz) {
+      if (!mc.lin.in[dz]) continue;
+      T* dst = line_grad + (mc.lin.i0 + dz) * w;
+#pragma omp simd
+      for (int64_t r = 0; r < w; ++r) dst[r] += mc.lin.w[dz] * glv[r];
+    }
   }
 }
 
@@ -694,36 +750,13 @@ void products_backward(const T* u, int64_t n, const std::vector<BlockedMode<T>>&
   const int64_t nb = blocks.size();
 #pragma omp parallel for schedule(dynamic, 1) if (nb > 1 && n >= kChunkPoints)
   for (int64_t b = 0; b < nb; ++b) {
-    const BlockedMode<T>& md = modes[blocks[b].mode];
-    const int64_t r0 = blocks[b].r0, w = blocks[b].w;
-    T* plane_grad = gp[blocks[b].mode].data() + r0 * md.rows * md.cols;
-    T* line_grad = gl[blocks[b].mode].data() + r0 * md.len;
-    T pv[kBlock], lv[kBlock], gpv[kBlock], glv[kBlock];
-    for (int64_t i = 0; i < n; ++i) {
-      const ModeCells<T> mc = mode_cells(u + 3 * i, md);
-      read_block(mc, md, r0, w, pv, lv);
-      if (summed) {
-        const T g = go[i];
-        for (int64_t r = 0; r < w; ++r) gpv[r] = g * lv[r], glv[r] = g * pv[r];
-      } else {
-        const T* g = go + i * K + md.offset + r0;
-        for (int64_t r = 0; r < w; ++r) gpv[r] = g[r] * lv[r], glv[r] = g[r] * pv[r];
-      }
-      for (int dy = 0; dy < 2; ++dy)
-        for (int dx = 0; dx < 2; ++dx) {
-          if (!mc.row.in[dy] || !mc.col.in[dx]) continue;
-          const T wt = mc.row.w[dy] * mc.col.w[dx];
-          T* dst = plane_grad + ((mc.row.i0 + dy) * md.cols + mc.col.i0 + dx) * w;
-#pragma omp simd
-          for (int64_t r = 0; r < w; ++r) dst[r] += wt * gpv[r];
-        }
-      for (int dz = 0; dz < 2; ++dz) {
-        if (!mc.lin.in[dz]) continue;
-        T* dst = line_grad + (mc.lin.i0 + dz) * w;
-#pragma omp simd
-        for (int64_t r = 0; r < w; ++r) dst[r] += mc.lin.w[dz] * glv[r];
-      }
-    }
+    const Block& blk = blocks[b];
+    const BlockedMode<T>& md = modes[blk.mode];
+    T* plane_grad = gp[blk.mode].data() + blk.r0 * md.rows * md.cols;
+    T* line_grad = gl[blk.mode].data() + blk.r0 * md.len;
+    with_width(blk.w, [&](auto W) {
+      block_backward<T, W()>(u, n, md, blk.r0, blk.w, summed, K, go, plane_grad, line_grad);
+    });
   }
 }
 
@@ -781,8 +814,9 @@ torch::Tensor vm_products_forward(torch::Tensor u, std::vector<torch::Tensor> pl
   const int64_t K = total_rank(planes);
   auto out = summed ? torch::empty({u.size(0)}, u.options()) : torch::empty({u.size(0), K}, u.options());
   AT_DISPATCH_FLOATING_TYPES(u.scalar_type(), "vm_products_forward", [&] {
-    const auto modes = blocked_modes<scalar_t>(planes, lines, axes, blocks_of(planes));
-    products_forward<scalar_t>(u.data_ptr<scalar_t>(), u.size(0), modes, summed, K, out.data_ptr<scalar_t>());
+    const auto blocks = blocks_of(planes);
+    const auto modes = blocked_modes<scalar_t>(planes, lines, axes, blocks);
+    products_forward<scalar_t>(u.data_ptr<scalar_t>(), u.size(0), modes, blocks, summed, K, out.data_ptr<scalar_t>());
   });
   return out;
 }
