@@ -676,12 +676,13 @@ inline void read_block(const ModeCells<T>& mc, const BlockedMode<T>& md, int64_t
   }
 }
 
-// One block's products at every point: written to its columns of out [N, K], or added to out [N] (summed).
+// One block's products at every point: written to its columns of out [N, K], or added to out [N] (summed). Called
+// inside products_forward's parallel region: its threads share the points.
 template <typename T, int64_t W>
 void block_forward(const T* u, int64_t n, const BlockedMode<T>& md, int64_t r0, int64_t w_run, bool summed, int64_t K,
                    T* out) {
   const int64_t w = W ? W : w_run;
-#pragma omp parallel for schedule(static) if (n >= kChunkPoints)
+#pragma omp for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     T pv[kBlock], lv[kBlock];
     read_block<T, W>(mode_cells(u + 3 * i, md), md, r0, w, pv, lv);
@@ -697,11 +698,13 @@ void block_forward(const T* u, int64_t n, const BlockedMode<T>& md, int64_t r0, 
   }
 }
 
-// Block by block (each block's factors stay in cache while all points read them), the points split among threads.
+// Block by block (each block's factors stay in cache while all points read them), the points split among the
+// threads of one parallel region (one fork for all blocks).
 template <typename T>
 void products_forward(const T* u, int64_t n, const std::vector<BlockedMode<T>>& modes,
                       const std::vector<Block>& blocks, bool summed, int64_t K, T* out) {
   if (summed) std::fill(out, out + n, T(0));
+#pragma omp parallel if (n >= kChunkPoints)
   for (const Block& b : blocks)
     with_width(b.w, [&](auto W) { block_forward<T, W()>(u, n, modes[b.mode], b.r0, b.w, summed, K, out); });
 }
