@@ -8,10 +8,10 @@ whatever the thread count. `MediumGrid` reads both its fields with it for CPU te
 extension is built (`--model.medium.kernel compiled`, the default); the PyTorch path stays the reference, and the
 path on CUDA (docs/performance.md, "The medium on CPU").
 
-`vm_products(u, planes, lines, axes, summed)` is `fields/tensorf.py`'s `vm_products` (two grid_samples per mode)
-in one pass per point, concatenated or summed as the TensoRF field takes them, with a hand-written backward to the
-planes and lines (the points get no gradient); `TensoRFField` reads with it on the same terms
-(`--model.kernels compiled`), tests/test_vm_products.py compares it with grid_sample.
+`vm_products(u, planes, lines, axes, summed)` is `fields/tensorf.py`'s `vm_products` (two grid_samples per mode,
+then a concatenation or a sum) in one call, with a hand-written backward to the planes and lines (the points get no
+gradient), deterministic whatever the thread count; `TensoRFField` reads with it on the same terms
+(`--model.kernels compiled`); tests/test_vm_products.py compares it with grid_sample.
 """
 
 from __future__ import annotations
