@@ -12,6 +12,8 @@ from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
 from uw3dgs.cameras import Camera
+from uw3dgs.kernels.direction_mlp import direction_mlp
+from uw3dgs.kernels.policy import Kernels, use_compiled
 from uw3dgs.options import CheckedConfig, check_number
 from uw3dgs.render.medium_types import PixelMedium
 from uw3dgs.render.sh import MAX_DEGREE, num_sh_bases, sh_basis
@@ -112,11 +114,15 @@ class _WaterHeads(torch.autograd.Function):
 
 class DirectionMedium(nn.Module):
     """c_med, sigma_bs, sigma_attn [..., 3] each from unit world-space directions [..., 3]; sigmas per unit of
-    camera-space depth in the scene's (normalised) units. Hidden layers use sigmoid activations, as theirs."""
+    camera-space depth in the scene's (normalised) units. Hidden layers use sigmoid activations, as theirs.
+    `kernels` (the model's `--model.kernels`): 'compiled' runs the MLP with its activations as one compiled kernel
+    (`uw3dgs/kernels/direction_mlp.py`) where it runs (CPU tensors, one hidden layer, directions needing no
+    gradient), PyTorch elsewhere; 'torch' always PyTorch (the reference)."""
 
-    def __init__(self, config: DirectionMediumConfig):
+    def __init__(self, config: DirectionMediumConfig, kernels: Kernels = "compiled"):
         super().__init__()
         self.config = config
+        self.kernels = kernels
         width, layers = config.hidden_dim, []
         in_dim = num_sh_bases(config.sh_degree)
         for _ in range(config.num_layers - 1):
@@ -128,7 +134,10 @@ class DirectionMedium(nn.Module):
         """[..., 9]: c_med, sigma_bs, sigma_attn (3 each) for unit directions [..., 3]."""
         basis = sh_basis(self.config.sh_degree, dirs)
         params = [p for layer in self.mlp if isinstance(layer, nn.Linear) for p in (layer.weight, layer.bias)]
-        raw = _SigmoidMLP.apply(basis.reshape(-1, basis.shape[-1]), *params)
+        rows = basis.reshape(-1, basis.shape[-1])
+        if len(params) == 4 and not rows.requires_grad and use_compiled(self.kernels, rows):
+            return direction_mlp(rows, *params, self.config.density_bias).view(*basis.shape[:-1], 9)
+        raw = _SigmoidMLP.apply(rows, *params)
         return _WaterHeads.apply(raw, self.config.density_bias).view(*basis.shape[:-1], 9)
 
     def forward(self, dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:

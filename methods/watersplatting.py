@@ -76,7 +76,7 @@ class WaterSplattingModel(GaussianSplattingModel):
 
     def __init__(self, config: WaterSplattingModelConfig, scene: SceneData, train_indices: list[int]):
         super().__init__(config, scene, train_indices)
-        self.direction_medium = DirectionMedium(config.medium)
+        self.direction_medium = DirectionMedium(config.medium, config.kernels)
         self.dataset_scale = float(scene.dataset_scale)
         self.train_cameras = [scene.cameras[i] for i in train_indices]
         self.step = 0

@@ -1,7 +1,7 @@
 // The Python module of the compiled CPU kernels: the rasterizer (cpu_rasterizer.cpp), the VM field read
 // (vm_field.cpp), the Gaussians' SH colours (sh_colors.cpp), PAUP's phi (floater_mlp.cpp), the D-SSIM loss's SSIM
-// (ssim.cpp), UW-3DGS's L_z (depth_consistency.cpp) and the medium compositor (medium_compositing.cpp), built
-// together by uw3dgs/render/cpu_backend.py.
+// (ssim.cpp), UW-3DGS's L_z (depth_consistency.cpp), the medium compositor (medium_compositing.cpp) and the direction
+// medium's MLP (direction_mlp.cpp), built together by uw3dgs/render/cpu_backend.py.
 #include <torch/extension.h>
 
 #include <vector>
@@ -70,6 +70,12 @@ std::vector<torch::Tensor> depth_consistency_forward(torch::Tensor radii, torch:
 std::vector<torch::Tensor> depth_consistency_backward(torch::Tensor means, torch::Tensor center, torch::Tensor ranges,
                                                       torch::Tensor gauss, torch::Tensor pixel, torch::Tensor coef,
                                                       double grad);
+std::vector<torch::Tensor> direction_mlp_forward(torch::Tensor x, torch::Tensor w1, torch::Tensor b1,
+                                                 torch::Tensor w2, torch::Tensor b2, double density_bias,
+                                                 bool for_backward);
+std::vector<torch::Tensor> direction_mlp_backward(torch::Tensor x, torch::Tensor w1, torch::Tensor b1,
+                                                  torch::Tensor w2, torch::Tensor b2, torch::Tensor raw,
+                                                  torch::Tensor hidden, torch::Tensor grad, double density_bias);
 std::vector<torch::Tensor> medium_composite_forward(torch::Tensor means2d, torch::Tensor conics,
                                                     torch::Tensor opacities, torch::Tensor feats,
                                                     torch::Tensor depths, torch::Tensor radii, torch::Tensor medium,
@@ -103,6 +109,8 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("ssim_backward", &ssim_backward);
   m.def("depth_consistency_forward", &depth_consistency_forward);
   m.def("depth_consistency_backward", &depth_consistency_backward);
+  m.def("direction_mlp_forward", &direction_mlp_forward);
+  m.def("direction_mlp_backward", &direction_mlp_backward);
   m.def("medium_composite_forward", &medium_composite_forward);
   m.def("medium_composite_backward", &medium_composite_backward);
 }

@@ -16,34 +16,6 @@ constexpr int kColor = 3;       // the features: colour (3), then depth
 constexpr int kFeats = kColor + 1;
 constexpr int kMediumValues = 9;  // per pixel: c_med, sigma_bs, sigma_attn (3 each)
 
-// exp(x) of the water factors, x <= 0 floored at kExpFloor (the factor is then below 2e-35: nothing to the sums).
-// Floats under AVX-512: exp_f32.h's reduction and polynomial with fused multiply-adds, the rounding by roundscale and
-// the scaling by scalef, about 14 instructions instead of vexp's 22, within an ulp of it. These factors only enter
-// sums; alpha's exp also decides which pixels blend, so it stays vexp (the same bits in forward and backward).
-inline Simd<float>::V water_exp(Simd<float>::V x) {
-#ifdef __AVX512F__
-  const auto c = [](float v) { return _mm512_set1_ps(v); };
-  const __m512 xc = _mm512_max_ps(x, c(static_cast<float>(kExpFloor)));
-  const __m512 q = _mm512_roundscale_ps(_mm512_mul_ps(xc, c(1.442695040888963407359924681001892137f)),
-                                        _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
-  const __m512 s = _mm512_fnmadd_ps(q, c(1.428606765330187045e-06f), _mm512_fnmadd_ps(q, c(0.693145751953125f), xc));
-  __m512 u = _mm512_fmadd_ps(s, c(0.000198527617612853646278381f), c(0.00139304355252534151077271f));
-  for (const float k : {0.00833336077630519866943359f, 0.0416664853692054748535156f, 0.166666671633720397949219f,
-                        0.5f})
-    u = _mm512_fmadd_ps(u, s, c(k));
-  u = _mm512_add_ps(_mm512_fmadd_ps(_mm512_mul_ps(s, s), u, s), c(1.0f));
-  return _mm512_scalef_ps(u, q);
-#else
-  using V = Simd<float>::V;
-  return vexp(V(x < static_cast<float>(kExpFloor) ? splat<V>(static_cast<float>(kExpFloor)) : x));
-#endif
-}
-
-inline Simd<double>::V water_exp(Simd<double>::V x) {
-  using V = Simd<double>::V;
-  return vexp(V(x < kExpFloor ? splat<V>(kExpFloor) : x));
-}
-
 // The water of one tile as planes shaped like the tile structs' (channel-major, rows padded to whole chunks):
 // -sigma_bs and -sigma_attn per channel (padding: 0), and the factors exp(-sigma z) of a Gaussian at depth z.
 template <typename T>
@@ -77,7 +49,7 @@ struct WaterPlanes {
 
   // exp(-sigma z) at the kLanes pixels from p of channel plane `ns`.
   V factor(const std::vector<T>& ns, int c, int64_t p, T z) const {
-    return water_exp(V(vload<V>(&ns[c * plane + p]) * z));
+    return vexp_floored(V(vload<V>(&ns[c * plane + p]) * z));
   }
 };
 
