@@ -330,6 +330,37 @@ def test_compiled_cases_reach_their_paths() -> None:
     assert ended.sum() >= 2
 
 
+SERIES_BOUNDS = {F64: 1 / 16, torch.float32: 1 / 8}
+"""medium_compositing.cpp's WaterSeries bounds: a (tile, Gaussian) pair whose depth times its tile's largest half-range
+of sigma is within takes its water factors as one exp at the tile's midrange times a short series, else an exp per
+pixel."""
+
+
+def _pairs_by_water_path(seed: int, n: int, settings: RasterSettings, size: tuple[int, int],
+                         bound: float) -> tuple[int, int]:
+    """(pairs on the series path, pairs on the exp-per-pixel path) of `_scene_and_medium(seed, n, *size)`."""
+    scene, medium = _scene_and_medium(seed, n, *size)
+    cam, ts = scene.camera, settings.tile_size
+    proj = project_gaussians(scene.means, scene.quats, scene.scales, scene.opacities, cam.viewmat, cam.K, cam.width,
+                             cam.height, settings)
+    bins = bin_gaussians(proj, cam.width, cam.height, ts)
+    sigma = torch.cat([medium.sigma_bs, medium.sigma_attn], dim=-1)
+    spread = torch.stack([(sigma[y:y + ts, x:x + ts].amax((0, 1)) - sigma[y:y + ts, x:x + ts].amin((0, 1))).max() / 2
+                          for y in range(0, cam.height, ts) for x in range(0, cam.width, ts)])
+    tiles = torch.repeat_interleave(torch.arange(len(bins.tile_counts)), bins.tile_counts)
+    series = spread[tiles] * proj.depths[bins.gauss_ids].abs() <= bound
+    return int(series.sum()), int((~series).sum())
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["f64", "f32"])
+def test_compiled_cases_take_both_water_paths(dtype: torch.dtype) -> None:
+    """test_compiled_matches_reference's tile16 and dense cases have many (tile, Gaussian) pairs on each path of the
+    water factors, so both are held to the reference there."""
+    for seed, n in ((0, 60), (1, 2000)):
+        series, exact = _pairs_by_water_path(seed, n, RasterSettings(tile_size=16), (40, 30), SERIES_BOUNDS[dtype])
+        assert series >= 10 and exact >= 10, (seed, n, series, exact)
+
+
 def test_dispatch_picks_compiled_on_cpu_and_refuses_gsplat(monkeypatch: pytest.MonkeyPatch) -> None:
     _compiled()
     from uw3dgs.kernels import medium_compositing as medium_cpu

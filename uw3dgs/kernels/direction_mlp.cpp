@@ -16,6 +16,7 @@ using uw3dgs_kernels::kLanes;
 using uw3dgs_kernels::Simd;
 using uw3dgs_kernels::splat;
 using uw3dgs_kernels::vexp;
+using uw3dgs_kernels::vfmadd;
 using uw3dgs_kernels::vexp_floored;
 
 constexpr int kOut = 9;    // c_med, sigma_bs, sigma_attn: 3 each
@@ -28,20 +29,6 @@ constexpr int64_t kBlock = kBlockVectors * kLanes;
 constexpr int64_t kChunkBlocks = 32;  // blocks per chunk of the backward (its unit of parallelism)
 constexpr int64_t kFlushBlocks = 16;  // blocks whose weight gradients are summed in T before they go to double
 constexpr int64_t kMaxChunks = 8;
-
-// a b + c, in one fused instruction for float where the CPU has it (the build's -ffp-contract=off keeps the other
-// kernels' rounding as the references'; here only the tolerance to PyTorch's matrix products matters).
-template <typename V>
-inline V madd(V a, V b, V c) {
-#if defined(__AVX512F__)
-  if constexpr (sizeof(V) == 64 && std::is_same_v<V, Simd<float>::V>)
-    return (V)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
-#elif defined(__FMA__)
-  if constexpr (sizeof(V) == 32 && std::is_same_v<V, Simd<float>::V>)
-    return (V)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
-#endif
-  return a * b + c;
-}
 
 template <typename V, typename T>
 inline V clamp_exp_arg(V x) {
@@ -160,10 +147,10 @@ inline V hidden_pre(const T* w, T b, const T* xv, int64_t stride) {
   V even = bcast<V>(b), odd = {};
 #pragma GCC unroll 16
   for (int i = 0; i + 1 < IN; i += 2) {
-    even = madd(bcast<V>(w[i]), vload_at<V>(xv + i * stride), even);
-    odd = madd(bcast<V>(w[i + 1]), vload_at<V>(xv + (i + 1) * stride), odd);
+    even = vfmadd(bcast<V>(w[i]), vload_at<V>(xv + i * stride), even);
+    odd = vfmadd(bcast<V>(w[i + 1]), vload_at<V>(xv + (i + 1) * stride), odd);
   }
-  if constexpr (IN % 2 == 1) even = madd(bcast<V>(w[IN - 1]), vload_at<V>(xv + (IN - 1) * stride), even);
+  if constexpr (IN % 2 == 1) even = vfmadd(bcast<V>(w[IN - 1]), vload_at<V>(xv + (IN - 1) * stride), even);
   return even + odd;
 }
 
@@ -192,7 +179,7 @@ void forward_impl(const T* x, int64_t P, const T* w1, const T* b1, const T* w2t,
 #pragma GCC unroll 16
         for (int m = 0; m < kOut; ++m) {
           T* r = rs + m * kBlock + v * kLanes;
-          vstore_at(r, madd(bcast<V>(w2k[m]), h, vload_at<V>(r)));
+          vstore_at(r, vfmadd(bcast<V>(w2k[m]), h, vload_at<V>(r)));
         }
       }
     }
@@ -274,14 +261,14 @@ void backward_impl(const T* x, int64_t P, const T* w2t, int64_t H, T density_bia
 #pragma GCC unroll 16
           for (int m = 0; m < kOut; ++m) {
             g[m] = vload_at<V>(gs + m * kBlock + v * kLanes);
-            if (m % 2) gh_odd = madd(bcast<V>(w2k[m]), g[m], gh_odd);
-            else gh_even = madd(bcast<V>(w2k[m]), g[m], gh_even);
-            g_w2[m] = madd(g[m], h, g_w2[m]);
+            if (m % 2) gh_odd = vfmadd(bcast<V>(w2k[m]), g[m], gh_odd);
+            else gh_even = vfmadd(bcast<V>(w2k[m]), g[m], gh_even);
+            g_w2[m] = vfmadd(g[m], h, g_w2[m]);
           }
           const V g_pre = (gh_even + gh_odd) * ((T(1) - h) * h);
           g_b1 += g_pre;
 #pragma GCC unroll 16
-          for (int i = 0; i < IN; ++i) g_w1[i] = madd(g_pre, vload_at<V>(xs + i * kBlock + v * kLanes), g_w1[i]);
+          for (int i = 0; i < IN; ++i) g_w1[i] = vfmadd(g_pre, vload_at<V>(xs + i * kBlock + v * kLanes), g_w1[i]);
         }
         const auto add = [&](int64_t q, const V& value) {
           T* a = acc + q * kLanes;

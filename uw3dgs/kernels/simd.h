@@ -109,6 +109,18 @@ inline Simd<double>::V vexp(Simd<double>::V x) {
   return u * (V)scale;
 }
 
+// a b + c, in one fused instruction for float where the CPU has it, for kernels whose results only need to be within
+// float rounding of their references (-ffp-contract=off keeps every other product and sum rounded as the references').
+template <typename V>
+inline V vfmadd(V a, V b, V c) {
+#if defined(__AVX512F__)
+  if constexpr (std::is_same_v<V, Simd<float>::V>) return (V)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#elif defined(__FMA__)
+  if constexpr (std::is_same_v<V, Simd<float>::V>) return (V)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
+#endif
+  return a * b + c;
+}
+
 // exp(x) for x <= 80 (callers clamp above), floored at kExpFloor (the result is then below 2e-35), for values that
 // only enter sums: the medium compositor's water factors, the direction MLP's sigmoid. Floats under AVX-512:
 // exp_f32.h's reduction and polynomial with fused multiply-adds, the rounding by roundscale and the scaling by scalef,
