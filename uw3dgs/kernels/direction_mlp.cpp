@@ -128,18 +128,6 @@ inline V bcast(T x) {
   return __builtin_shuffle(V{x}, typename Simd<T>::I{});
 }
 
-template <typename V, typename T>
-inline V vload_at(const T* p) {
-  V v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
-
-template <typename V, typename T>
-inline void vstore_at(T* p, const V& v) {
-  std::memcpy(p, &v, sizeof v);
-}
-
 // The pre-activation b + w . x of one hidden unit at one pixel vector, x [IN][stride] from `xv`: two interleaved
 // sums, so consecutive pixel vectors' chains overlap in the CPU.
 template <typename V, int IN, typename T>
@@ -147,10 +135,10 @@ inline V hidden_pre(const T* w, T b, const T* xv, int64_t stride) {
   V even = bcast<V>(b), odd = {};
 #pragma GCC unroll 16
   for (int i = 0; i + 1 < IN; i += 2) {
-    even = vfmadd(bcast<V>(w[i]), vload_at<V>(xv + i * stride), even);
-    odd = vfmadd(bcast<V>(w[i + 1]), vload_at<V>(xv + (i + 1) * stride), odd);
+    even = vfmadd(bcast<V>(w[i]), vload<V>(xv + i * stride), even);
+    odd = vfmadd(bcast<V>(w[i + 1]), vload<V>(xv + (i + 1) * stride), odd);
   }
-  if constexpr (IN % 2 == 1) even = vfmadd(bcast<V>(w[IN - 1]), vload_at<V>(xv + (IN - 1) * stride), even);
+  if constexpr (IN % 2 == 1) even = vfmadd(bcast<V>(w[IN - 1]), vload<V>(xv + (IN - 1) * stride), even);
   return even + odd;
 }
 
@@ -175,24 +163,24 @@ void forward_impl(const T* x, int64_t P, const T* w1, const T* b1, const T* w2t,
       T* hk = hidden ? hidden + (block * H + k) * kBlock : nullptr;
       for (int64_t v = 0; v < nv; ++v) {
         const V h = vsigmoid<T>(hidden_pre<V, IN>(w1 + k * IN, b1[k], xs + v * kLanes, kBlock));
-        if (hk) vstore_at(hk + v * kLanes, h);
+        if (hk) vstore(hk + v * kLanes, h);
 #pragma GCC unroll 16
         for (int m = 0; m < kOut; ++m) {
           T* r = rs + m * kBlock + v * kLanes;
-          vstore_at(r, vfmadd(bcast<V>(w2k[m]), h, vload_at<V>(r)));
+          vstore(r, vfmadd(bcast<V>(w2k[m]), h, vload<V>(r)));
         }
       }
     }
     for (int64_t v = 0; v < nv; ++v) {
       V acc[kOut], act[kOut];
-      for (int m = 0; m < kOut; ++m) acc[m] = vload_at<V>(rs + m * kBlock + v * kLanes);
+      for (int m = 0; m < kOut; ++m) acc[m] = vload<V>(rs + m * kBlock + v * kLanes);
       activate<T>(acc, density_bias, act);
-      for (int m = 0; m < kOut; ++m) vstore_at(rs + m * kBlock + v * kLanes, act[m]);
+      for (int m = 0; m < kOut; ++m) vstore(rs + m * kBlock + v * kLanes, act[m]);
       if (raw) {
         alignas(64) T buf[kLanes];
         const int64_t lanes_here = std::min<int64_t>(kLanes, n - v * kLanes);
         for (int m = 0; m < kOut; ++m) {
-          vstore_at(buf, acc[m]);
+          vstore(buf, acc[m]);
           std::copy(buf, buf + lanes_here, raw + m * P + p0 + v * kLanes);
         }
       }
@@ -241,14 +229,14 @@ void backward_impl(const T* x, int64_t P, const T* w2t, int64_t H, T density_bia
         const int64_t lanes_here = std::min<int64_t>(kLanes, n - v * kLanes);
         for (int m = 0; m < kOut; ++m) {
           std::copy(raw + m * P + p0 + v * kLanes, raw + m * P + p0 + v * kLanes + lanes_here, buf);
-          r[m] = vload_at<V>(buf);
-          g[m] = vload_at<V>(gs + m * kBlock + v * kLanes);
+          r[m] = vload<V>(buf);
+          g[m] = vload<V>(gs + m * kBlock + v * kLanes);
         }
         activate_backward<T>(r, density_bias, g);
         for (int m = 0; m < kOut; ++m) {
-          vstore_at(gs + m * kBlock + v * kLanes, g[m]);
+          vstore(gs + m * kBlock + v * kLanes, g[m]);
           T* a = acc + (o_b2 + m) * kLanes;
-          vstore_at(a, vload_at<V>(a) + g[m]);
+          vstore(a, vload<V>(a) + g[m]);
         }
       }
       for (int64_t k = 0; k < H; ++k) {  // one hidden unit over the block, its weight gradients in registers
@@ -256,11 +244,11 @@ void backward_impl(const T* x, int64_t P, const T* w2t, int64_t H, T density_bia
         const T* hk = hidden + (block * H + k) * kBlock;
         V g_w1[IN] = {}, g_w2[kOut] = {}, g_b1 = {};
         for (int64_t v = 0; v < nv; ++v) {
-          const V h = vload_at<V>(hk + v * kLanes);
+          const V h = vload<V>(hk + v * kLanes);
           V g[kOut], gh_even = {}, gh_odd = {};
 #pragma GCC unroll 16
           for (int m = 0; m < kOut; ++m) {
-            g[m] = vload_at<V>(gs + m * kBlock + v * kLanes);
+            g[m] = vload<V>(gs + m * kBlock + v * kLanes);
             if (m % 2) gh_odd = vfmadd(bcast<V>(w2k[m]), g[m], gh_odd);
             else gh_even = vfmadd(bcast<V>(w2k[m]), g[m], gh_even);
             g_w2[m] = vfmadd(g[m], h, g_w2[m]);
@@ -268,18 +256,18 @@ void backward_impl(const T* x, int64_t P, const T* w2t, int64_t H, T density_bia
           const V g_pre = (gh_even + gh_odd) * ((T(1) - h) * h);
           g_b1 += g_pre;
 #pragma GCC unroll 16
-          for (int i = 0; i < IN; ++i) g_w1[i] = vfmadd(g_pre, vload_at<V>(xs + i * kBlock + v * kLanes), g_w1[i]);
+          for (int i = 0; i < IN; ++i) g_w1[i] = vfmadd(g_pre, vload<V>(xs + i * kBlock + v * kLanes), g_w1[i]);
         }
         const auto add = [&](int64_t q, const V& value) {
           T* a = acc + q * kLanes;
-          vstore_at(a, vload_at<V>(a) + value);
+          vstore(a, vload<V>(a) + value);
         };
         for (int i = 0; i < IN; ++i) add(k * IN + i, g_w1[i]);
         add(o_b1 + k, g_b1);
         for (int m = 0; m < kOut; ++m) add(o_w2 + k * kOut + m, g_w2[m]);
       }
       if ((block - first + 1) % kFlushBlocks == 0 || block + 1 == last) {
-        for (int64_t q = 0; q < per_chunk; ++q) add_lanes(total + q * kLanes, vload_at<V>(acc + q * kLanes));
+        for (int64_t q = 0; q < per_chunk; ++q) add_lanes(total + q * kLanes, vload<V>(acc + q * kLanes));
         std::fill(partial.begin(), partial.end(), T(0));
       }
     }
@@ -287,7 +275,7 @@ void backward_impl(const T* x, int64_t P, const T* w2t, int64_t H, T density_bia
   for (int64_t q = 0; q < per_chunk; ++q) {  // the lanes in a fixed tree, then the chunks in order
     double sum = 0;
     for (int64_t chunk = 0; chunk < chunks; ++chunk)
-      sum += uw3dgs_kernels::hsum<double>(vload_at<Simd<double>::V>(lanes.data() + (chunk * per_chunk + q) * kLanes));
+      sum += uw3dgs_kernels::hsum<double>(vload<Simd<double>::V>(lanes.data() + (chunk * per_chunk + q) * kLanes));
     sums[q] = sum;
   }
 }
