@@ -2,12 +2,13 @@
 // (fields/direction_medium.py, one hidden layer): per pixel p with encoded direction x_p [IN],
 //   raw_p = W2 sigmoid(W1 x_p + b1) + b2 [9],
 //   out_p = (sigmoid(raw_p[0:3]), softplus(raw_p[3:9] + density_bias)) [9], packed as the medium compositor reads,
-// PyTorch's softplus (the identity above 20). SIMD across pixels (kLanes per vector, simd.h). The forward keeps a
-// pixel vector's inputs and its 9 output sums in registers while it walks the hidden units: the [P, H] hidden layer
-// is never stored. The backward recomputes each hidden unit on a block of pixels that stays in L1, with the unit's
-// weight gradients summed in registers over the block, then per lane in double. The inputs (the SH encoding of ray
-// directions, fixed) get no gradient. Blocks and chunks depend on P alone and the chunks are reduced in order: bitwise
-// identical results whatever the thread count (not the SIMD width the build was compiled for).
+// PyTorch's softplus (the identity above 20). SIMD across pixels (kLanes per vector, simd.h), fused multiply-adds.
+// The forward walks the hidden units one by one over a block of kBlock pixels whose inputs and 9 output sums stay in
+// L1, the activations in the same pass; for the backward it keeps the hidden layer (as the PyTorch path does). The
+// backward takes each unit over a block with the unit's weight gradients summed in registers, then per lane (in T
+// over kFlushBlocks blocks, then in double). The inputs (the SH encoding of ray directions, fixed) get no gradient.
+// Blocks and chunks depend on P alone and the chunks are reduced in order: bitwise identical results whatever the
+// thread count (not the SIMD width the build was compiled for).
 #include "simd.h"
 
 namespace {
