@@ -1,7 +1,7 @@
 """The direction medium's MLP and its output activations as one compiled CPU kernel (`direction_mlp.cpp`): one
 hidden layer of sigmoid units, then c_med = sigmoid, sigma_bs, sigma_attn = softplus(+ density_bias), packed [P, 9],
 with the backward to the weights in one pass per block of pixels. The same numbers as the module's `nn.Sequential`
-and PyTorch's activations to float rounding (tests/test_watersplatting.py); `DirectionMedium` uses it under
+and PyTorch's activations to float rounding (tests/test_direction_mlp.py); `DirectionMedium` uses it under
 `--model.kernels compiled` for CPU tensors, PyTorch elsewhere (the reference, and the path on CUDA)."""
 
 from __future__ import annotations
