@@ -63,12 +63,23 @@ class WaterSplattingModelConfig(GaussianSplattingModelConfig):
     """Training starts at 1 / 2^this of the data's resolution ..."""
     resolution_schedule: int = 3000
     """... and doubles it every this many steps, up to the full resolution. Evaluation renders at full resolution."""
+    reference_steps: int = 15000
+    """resolution_schedule is for a run of this many steps (their 15,000); a run of --max-num-iterations N scales it
+    by N / this, so a short run keeps their proportions (full resolution from 40% of the run on; unscaled, a 6,000-step
+    run would never train at full resolution); 0 takes it as given."""
 
     def check_options(self) -> None:
         super().check_options()
         check_number(self, "data_loss_eps", gt=0)
         check_number(self, "num_downscales", ge=0, integer=True)
         check_number(self, "resolution_schedule", ge=1, integer=True)
+        check_number(self, "reference_steps", ge=0, integer=True)
+
+    def resolution_schedule_for_run(self, max_num_iterations: int) -> int:
+        """`resolution_schedule` for a run of `max_num_iterations` steps (`reference_steps`), at least 1."""
+        if self.reference_steps == 0:
+            return self.resolution_schedule
+        return max(round(self.resolution_schedule * max_num_iterations / self.reference_steps), 1)
 
 
 class WaterSplattingModel(GaussianSplattingModel):
@@ -80,6 +91,8 @@ class WaterSplattingModel(GaussianSplattingModel):
         self.dataset_scale = float(scene.dataset_scale)
         self.train_cameras = [scene.cameras[i] for i in train_indices]
         self.step = 0
+        self.resolution_schedule = config.resolution_schedule
+        """Steps between doublings of the training resolution in this run (`get_training_callbacks` scales it)."""
 
     def set_step(self, step: int) -> None:
         """The training step, for the resolution schedule."""
@@ -89,13 +102,14 @@ class WaterSplattingModel(GaussianSplattingModel):
         """1 / the resolution this step trains at (1 outside training)."""
         if not self.training:
             return 1
-        return 2 ** max(self.config.num_downscales - self.step // self.config.resolution_schedule, 0)
+        return 2 ** max(self.config.num_downscales - self.step // self.resolution_schedule, 0)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {**super().param_groups(), MEDIUM_GROUP: list(self.direction_medium.parameters())}
 
     def get_training_callbacks(self, optimizers: Optimizers, max_num_iterations: int) -> list[TrainingCallback]:
         strategy = DefaultStrategy(self.config.densification, self.scene_extent, max_num_iterations)
+        self.resolution_schedule = self.config.resolution_schedule_for_run(max_num_iterations)
         return [StepSchedule("sh_degree", self.gaussians), StepSchedule("resolution", self),
                 MediumResettingDensityControl(strategy, self.gaussians, optimizers, (MEDIUM_GROUP,))]
 

@@ -15,7 +15,11 @@ from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
 from uw3dgs.fields import direction_medium
 from uw3dgs.fields.direction_medium import DirectionMedium, DirectionMediumConfig, _SigmoidMLP
 from uw3dgs.fields.gaussians import PARAM_NAMES
-from uw3dgs.methods.watersplatting import MediumResettingDensityControl, WaterSplattingModelConfig
+from uw3dgs.methods.watersplatting import (
+    MediumResettingDensityControl,
+    WaterSplattingModelConfig,
+    watersplatting_optimizers,
+)
 from uw3dgs.metrics.image import ssim
 from uw3dgs.registry import METHODS
 from uw3dgs.render import RasterSettings
@@ -186,6 +190,23 @@ def test_training_renders_below_full_resolution_first():
     assert model.get_outputs(camera)["rgb"].shape == (camera.height, camera.width, 3)
 
 
+def test_resolution_schedule_scales_with_the_run_length():
+    """Their 3,000 steps a doubling are for 15,000 steps: a 6,000-step run doubles every 1,200 (full resolution from
+    step 2,400, 60% of the run as theirs); reference_steps 0 keeps 3,000; the callbacks set the run's schedule."""
+    config = WaterSplattingModelConfig()
+    assert config.resolution_schedule_for_run(15000) == 3000
+    assert config.resolution_schedule_for_run(6000) == 1200
+    assert config.resolution_schedule_for_run(3) == 1
+    assert dataclasses.replace(config, reference_steps=0).resolution_schedule_for_run(6000) == 3000
+    _, model = _model()
+    optimizers = Optimizers(watersplatting_optimizers(), model.param_groups(), 1.0, 6000)
+    model.get_training_callbacks(optimizers, 6000)
+    model.train()
+    for step, factor in ((0, 4), (1199, 4), (1200, 2), (2399, 2), (2400, 1)):
+        model.set_step(step)
+        assert model.downscale_factor() == factor
+
+
 def test_water_summary_is_per_range_and_per_dataset_unit():
     """The eval keys: c_med, and sigma / |ray| / dataset scale, averaged over the test pixels; rel errors against
     the truth. A constant water (bias only) makes the averages known."""
@@ -251,7 +272,7 @@ def test_short_run_trains_evaluates_exports_renders(tmp_path, cache_dir, tiny_sc
     monkeypatch.setenv("COLUMNS", "300")
     spec = METHODS["watersplatting"].config
     model = dataclasses.replace(
-        spec.model, resolution_schedule=10,
+        spec.model, resolution_schedule=10, reference_steps=0,
         densification=dataclasses.replace(spec.model.densification, refine_start=5, refine_every=5, refine_stop=15,
                                           reset_opacity_every=10, min_opacity=0.02, late_min_opacity=0.02),
         gaussians=dataclasses.replace(spec.model.gaussians, sh_degree_interval=10))
