@@ -1,12 +1,15 @@
 """A `watersplatting` training step against a `3dgs` step at equal Gaussians, on the CPU.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_NUM_THREADS=1 \\
-      python benchmarks/speed/watersplatting_step.py [--repeats 10] [--steps 20] [--clock wall|cpu] [--parts]
+      python benchmarks/speed/watersplatting_step.py [--repeats 10] [--steps 20] [--clock wall|cpu] [--parts] \
+      [--points 4000]
 
-Both methods start on the built-in synthetic scene from the same initial points, train `--steps` steps without
-any density change (so the Gaussians stay the same in number), then one more step is timed for each, best of
-`--repeats`, the two alternating three times so both see the same drift of the machine. watersplatting renders at
-full resolution here (`--model.num-downscales 0`): equal pixels as well as equal Gaussians. A step is everything the
+Both methods start on the built-in synthetic scene from the same `--points` initial points (4,000, the scene's
+default; a 6,000-step run of either ends with about 40,000 Gaussians there, 190,000 on IUI3-RedSea x8), train
+`--steps` steps without any density change (so the Gaussians stay the same in number), then one more step is timed
+for each, best of `--repeats`, the two alternating three times so both see the same drift of the machine.
+watersplatting renders at full resolution here (`--model.num-downscales 0`): equal pixels as well as equal
+Gaussians. A step is everything the
 Trainer does: render (for watersplatting the medium MLP and the medium compositor), losses, backward, Adam.
 `--clock cpu` times this process's CPU time instead of wall time (on a machine shared with other work, the wall
 time of a one-thread step mostly measures the others). `--parts` also times, on the watersplatting model's
@@ -28,18 +31,21 @@ import torch
 from timing import best_ms  # the sibling benchmark script, next to this one
 
 from uw3dgs.engine.trainer import Trainer
-from uw3dgs.registry import METHODS
+from uw3dgs.registry import DATAMANAGERS, METHODS
 
 CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
-def trainer_of(method: str, steps: int, output: Path) -> tuple[Trainer, list[int]]:
+def trainer_of(method: str, steps: int, points: int, output: Path) -> tuple[Trainer, list[int]]:
     config = METHODS[method].config
+    synthetic = DATAMANAGERS["synthetic"].config
+    synthetic = dataclasses.replace(synthetic, scene=dataclasses.replace(synthetic.scene, num_points=points))
     model = dataclasses.replace(config.model, densification=dataclasses.replace(
         config.model.densification, refine_start=10**9, reset_opacity_every=0))
     if method == "watersplatting":
         model = dataclasses.replace(model, num_downscales=0)
-    config = dataclasses.replace(config, model=model, output_dir=output, progress=False, device="cpu",
+    config = dataclasses.replace(config, model=model, datamanager=synthetic,
+                                 output_dir=output, progress=False, device="cpu",
                                  steps_per_save=10**9, steps_per_eval_image=10**9, steps_per_eval_all_images=10**9,
                                  max_num_iterations=10**6)
     trainer = Trainer(config)
@@ -104,11 +110,13 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20, help="steps trained before timing")
     parser.add_argument("--clock", choices=tuple(CLOCKS), default="wall")
     parser.add_argument("--parts", action="store_true", help="also time what a watersplatting step adds")
+    parser.add_argument("--points", type=int, default=4000, help="initial points = Gaussians of both methods")
     args = parser.parse_args()
     clock = CLOCKS[args.clock]
     best: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as scratch:
-        runs = {method: trainer_of(method, args.steps, Path(scratch) / method) for method in ("3dgs", "watersplatting")}
+        runs = {method: trainer_of(method, args.steps, args.points, Path(scratch) / method)
+                for method in ("3dgs", "watersplatting")}
         calls: dict[str, Callable[[], None]] = {}
         for method, (trainer, step) in runs.items():
             def one(trainer=trainer, step=step) -> None:
