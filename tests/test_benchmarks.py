@@ -340,6 +340,30 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     assert [line for line in capsys.readouterr().out.splitlines() if line.startswith("|")] == lines
 
 
+@pytest.mark.slow  # trains a run in process
+def test_medium_recovery_survey_rows_start_from_the_combined_estimate(tmp_path, cache_dir, capsys):
+    """A survey variant trains with --model.medium.init multiview; its row's start is the run's combined medium
+    (notes/medium_evidence.json), scored and judged by that evidence, not by the single-image report."""
+    script = load_script("medium_recovery")
+    name = "survey-2-passes-no-open-water"
+    assert script.VARIANTS[name] == ({"pass_altitudes": (3.0, 6.0), "open_water": False}, script.MULTIVIEW)
+    argv = ["--steps", "5", "--variants", name, "--output-dir", str(tmp_path), "--cache-dir", str(cache_dir),
+            "--scene", "width=48", "--scene", "height=36", "--scene", "num_views=12", "--scene", "num_points=600"]
+    script.main(argv)
+    out = capsys.readouterr().out
+    row = json.loads((tmp_path / name / "row.json").read_text())
+    evidence = json.loads(next((tmp_path / name).glob("**/notes/medium_evidence.json")).read_text())
+    start = row["start"]
+    for key, parameter in (("beta_d", "beta_D"), ("beta_b", "beta_B"), ("b_inf", "B_inf")):
+        values = [c["value"] for c in evidence["checks"] if c["name"] == parameter]
+        assert start["medium"][key] == pytest.approx(values)
+        assert start["sources"][parameter] == [c["source"] for c in evidence["checks"] if c["name"] == parameter]
+    assert start["weak"] == [f"{c['name']} {c['channel']}" for c in evidence["checks"]
+                             if c["source"] == "not identified"]
+    (line,) = [cells(r) for r in out.splitlines() if r.startswith(f"| {name} |") and r.count("|") == 9]
+    assert line[1] == " ; ".join(script.percents(start["errors"][p]) for p in script.PARAMETERS)
+
+
 def test_quality_ranking_ranks_methods_and_correlates_with_the_truth(tmp_path, monkeypatch, capsys):
     """Spearman's rho against scipy's (ties included), and the script on three methods' fake results: a score that
     orders the runs as uri_psnr does gets +1, one that reverses them -1."""

@@ -26,7 +26,7 @@ import time
 from types import SimpleNamespace
 
 import torch
-from medium_recovery import medium_errors  # benchmarks/analysis/medium_recovery.py, next to this script: its scoring
+from medium_recovery import SURVEYS, medium_errors  # the sibling script: its survey variants and scoring
 from torch import Tensor
 
 from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
@@ -39,26 +39,6 @@ from uw3dgs.fields.medium_multiview import observe_and_estimate
 
 SCENES = {"version 1 (tilt 35, no patches)": (35.0, 0), "tilt 55, no patches": (55.0, 0),
           "version 2 (tilt 55, dark patches)": (55.0, 60)}
-
-
-# name -> scene options (SyntheticSceneConfig fields)
-SURVEYS: dict[str, dict] = {
-    "forward, open water": {},
-    "forward, no open water, darkest 10%": {"open_water": False, "dark_patch_albedo": 0.1},
-    "2 passes (3, 6 m), open water": {"pass_altitudes": (3.0, 6.0)},
-    "2 passes, no open water": {"pass_altitudes": (3.0, 6.0), "open_water": False},
-    "2 passes, no open water, darkest 10%": {"pass_altitudes": (3.0, 6.0), "open_water": False,
-                                             "dark_patch_albedo": 0.1},
-    "2 passes, no open water, no dark patches": {"pass_altitudes": (3.0, 6.0), "open_water": False,
-                                                 "num_dark_patches": 0},
-    "3 passes (2, 4, 6 m), no open water, darkest 10%": {"pass_altitudes": (2.0, 4.0, 6.0), "open_water": False,
-                                                         "dark_patch_albedo": 0.1},
-    "2 passes, no open water, darkest 10%, gradient": {"pass_altitudes": (3.0, 6.0), "open_water": False,
-                                                       "dark_patch_albedo": 0.1, "medium_profile": "gradient"},
-    "2 passes, no open water, darkest 10%, turbid bottom": {"pass_altitudes": (3.0, 6.0), "open_water": False,
-                                                            "dark_patch_albedo": 0.1,
-                                                            "medium_profile": "turbid-bottom"},
-}
 
 
 def errors_text(errors: dict[str, list[float]]) -> str:

@@ -30,9 +30,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
 import shlex
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import torch
 
@@ -42,7 +44,9 @@ from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.datamanagers.synthetic.rendering import beta_field, ray_mean_factor
 from uw3dgs.engine.checkpoint import checkpoint_step, latest_checkpoint
 from uw3dgs.engine.evaluator import load_trained
+from uw3dgs.engine.run_folder import NOTES_DIR
 from uw3dgs.fields.medium_estimate import estimate_from_views
+from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED
 from uw3dgs.fields.medium_identifiability import assess_medium
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
@@ -72,6 +76,38 @@ VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "turbid-bottom-grid-live": ({"medium_profile": "turbid-bottom"}, ["medium-grid", *LIVE]),
     "plume-grid-live": ({"medium_profile": "plume"}, ["medium-grid", *LIVE]),
 }
+# the survey variants (passes over the same seabed at one to three altitudes; also medium_estimate.py --survey):
+# name -> scene options (SyntheticSceneConfig fields)
+SURVEYS: dict[str, dict] = {
+    "forward, open water": {},
+    "forward, no open water, darkest 10%": {"open_water": False, "dark_patch_albedo": 0.1},
+    "2 passes (3, 6 m), open water": {"pass_altitudes": (3.0, 6.0)},
+    "2 passes, no open water": {"pass_altitudes": (3.0, 6.0), "open_water": False},
+    "2 passes, no open water, darkest 10%": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                             "dark_patch_albedo": 0.1},
+    "2 passes, no open water, no dark patches": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                 "num_dark_patches": 0},
+    "3 passes (2, 4, 6 m), no open water, darkest 10%": {"pass_altitudes": (2.0, 4.0, 6.0), "open_water": False,
+                                                         "dark_patch_albedo": 0.1},
+    "2 passes, no open water, darkest 10%, gradient": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                       "dark_patch_albedo": 0.1, "medium_profile": "gradient"},
+    "2 passes, no open water, darkest 10%, turbid bottom": {"pass_altitudes": (3.0, 6.0), "open_water": False,
+                                                            "dark_patch_albedo": 0.1,
+                                                            "medium_profile": "turbid-bottom"},
+}
+# the survey variants, started from the estimate combined by evidence (single-image and multi-view)
+MULTIVIEW = ["--model.medium.init", "multiview"]
+
+
+def survey_name(survey: str) -> str:
+    """'2 passes (3, 6 m), open water' -> 'survey-2-passes-3-6-m-open-water'."""
+    return "survey-" + re.sub(r"[^a-z0-9]+", "-", survey.lower()).strip("-")
+
+
+VARIANTS.update({survey_name(survey): (options, MULTIVIEW) for survey, options in SURVEYS.items()})
+VARIANTS.update({survey_name(survey) + "-live": (options, ["medium-grid", *LIVE, *MULTIVIEW])
+                 for survey, options in SURVEYS.items()
+                 if options.get("medium_profile", "homogeneous") != "homogeneous"})
 PARAMETERS = ("beta_D", "beta_B", "B_inf")
 BAR, GAIN_DB = 0.15, 6.0
 
@@ -143,6 +179,38 @@ def ray_mean_errors(datamanager, scene_config: SyntheticSceneConfig, ray_betas) 
     return {name: torch.cat(e).mean(0).tolist() for name, e in errors.items()}
 
 
+def homogeneous_row(datamanager, scene_config: SyntheticSceneConfig, beta_d: torch.Tensor, beta_b: torch.Tensor,
+                    b_inf: torch.Tensor) -> dict:
+    """A homogeneous medium (each [3]) and its errors at the seabed points and along the test rays."""
+    medium = SimpleNamespace(beta_d=beta_d, beta_b=beta_b, b_inf=b_inf)
+
+    def flat(camera, ranges):
+        return beta_d.expand(*ranges.shape, 3), beta_b.expand(*ranges.shape, 3)
+
+    return {"medium": {"beta_d": beta_d.tolist(), "beta_b": beta_b.tolist(), "b_inf": b_inf.tolist()},
+            "errors": medium_errors(datamanager.scene, scene_config, medium),
+            "errors_ray_mean": ray_mean_errors(datamanager, scene_config, flat)}
+
+
+def evidence_start(evidence: dict, datamanager, scene_config: SyntheticSceneConfig) -> dict:
+    """The start of a run with init 'multiview' (its `notes/medium_evidence.json`): the combined medium, its errors,
+    and what its evidence does not identify (with why), which replaces the single-image report's verdict."""
+    values = {name: torch.tensor([c["value"] for c in evidence["checks"] if c["name"] == name])
+              for name in PARAMETERS}
+    start = homogeneous_row(datamanager, scene_config, *values.values())
+    weak = [c for c in evidence["checks"] if c["source"] == NOT_IDENTIFIED]
+    return {**start, "weak": [f"{c['name']} {c['channel']}" for c in weak],
+            "reasons": [f"{c['name']} {c['channel']}: {c['reason']}" for c in weak],
+            "sources": {name: [c["source"] for c in evidence["checks"] if c["name"] == name] for name in PARAMETERS}}
+
+
+def start_of(row: dict) -> dict:
+    """What the run started from: 'medium', 'errors', 'errors_ray_mean', 'weak' (not identifiable before training)
+    and 'reasons'; the combined estimate and its evidence for init 'multiview', else the single-image estimate and
+    its report."""
+    return row.get("start") or {**row["estimate"], "weak": row["weak"], "reasons": row["reasons"]}
+
+
 def estimate_row(scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> dict:
     """The point-based estimate as `uw3dgs` makes it before training (plain and with the residual term), its errors,
     the identifiability report of the plain one (the default), and the input's PSNR against the clean test images."""
@@ -152,13 +220,7 @@ def estimate_row(scene_config: SyntheticSceneConfig, cache_dir: Path | None) -> 
     row = {}
     for key, residual in (("estimate", False), ("estimate_residual", True)):
         est, water = estimate_from_views(knobs, scene, datamanager.train_indices, residual=residual)
-        medium = {"beta_d": est.beta_d.tolist(), "beta_b": est.beta_b.tolist(), "b_inf": est.b_inf.tolist()}
-
-        def flat(camera, ranges, e=est):
-            return e.beta_d.expand(*ranges.shape, 3), e.beta_b.expand(*ranges.shape, 3)
-
-        row[key] = {"medium": medium, "errors": medium_errors(scene, scene_config, est),
-                    "errors_ray_mean": ray_mean_errors(datamanager, scene_config, flat)}
+        row[key] = homogeneous_row(datamanager, scene_config, est.beta_d, est.beta_b, est.b_inf)
         if not residual:
             report = assess_medium(*est.observations, est.fit, water, knobs.dark_bins, knobs.dark_share, residual,
                                    positions=est.positions, open_water=est.open_water)
@@ -290,6 +352,9 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
                         "errors_ray_mean": ray_mean_errors(datamanager, scene_config, model.ray_betas),
                         "spread": field_spread(datamanager.scene, scene_config, model.medium)},
                eval=results, recoverable=recoverable_psnr(model, datamanager, row["recoverable_range"]))
+    evidence = config.parent / NOTES_DIR / "medium_evidence.json"
+    if evidence.is_file():
+        row["start"] = evidence_start(json.loads(evidence.read_text()), datamanager, scene_config)
     path.write_text(json.dumps(row, indent=1))
     return row
 
@@ -302,7 +367,7 @@ def verdict(row: dict) -> tuple[str, str]:
     """(the weak parameters or 'identifiable', whether the bar is met: every parameter and channel the report
     calls identifiable within 15% after training and the URI 6 dB above the input's PSNR on the whole image; if not,
     what missed, a URI short of the bar with its gain on the recoverable seabed too)."""
-    weak = set(row["weak"])
+    weak = set(start_of(row)["weak"])
     misses = [f"{p} {c}" for p in PARAMETERS for c, e in zip("RGB", row["trained"]["errors"][p], strict=True)
               if f"{p} {c}" not in weak and e > BAR]
     gain = row["uri_psnr"] - row["input_psnr"]
@@ -321,13 +386,13 @@ def table(rows: list[dict]) -> list[str]:
              "trained err % beta_D / beta_B / B_inf (R/G/B) | input PSNR | URI PSNR | not identifiable | "
              "bar met |", "|---|---|---|---|---:|---:|---|---|"]
     for row in rows:
-        errs = [" ; ".join(percents(row[k]["errors"][p]) for p in PARAMETERS)
-                for k in ("estimate", "estimate_residual", "trained")]
+        errs = [" ; ".join(percents(part["errors"][p]) for p in PARAMETERS)
+                for part in (start_of(row), row["estimate_residual"], row["trained"])]
         weak, met = verdict(row)
         lines.append(f"| {row['name']} | {errs[0]} | {errs[1]} | {errs[2]} | {row['input_psnr']:.2f} | "
                      f"{row['uri_psnr']:.2f} | {weak} | {met} |")
     lines.append("")
-    lines += [f"- {row['name']}: {reason}" for row in rows for reason in row["reasons"]]
+    lines += [f"- {row['name']}: {reason}" for row in rows for reason in start_of(row)["reasons"]]
     return lines
 
 
@@ -340,10 +405,10 @@ def field_table(rows: list[dict]) -> list[str]:
     lines = ["| variant | medium | beta_D: seabed points / Gaussian centres / test rays | beta_B: the same |",
              "|---|---|---|---|"]
     for row in rows:
-        for label, kind in (("estimate", "estimate"), ("trained", "trained")):
-            where = ["errors", "errors_at_centres", "errors_ray_mean"] if kind == "trained" else \
+        for label, part in (("estimate", start_of(row)), ("trained", row["trained"])):
+            where = ["errors", "errors_at_centres", "errors_ray_mean"] if label == "trained" else \
                 ["errors", None, "errors_ray_mean"]
-            cells = [" / ".join(percents(row[kind][w][p]) if w else "-" for w in where) for p in PARAMETERS[:2]]
+            cells = [" / ".join(percents(part[w][p]) if w else "-" for w in where) for p in PARAMETERS[:2]]
             lines.append(f"| {row['name']} | {label} | {cells[0]} | {cells[1]} |")
     return lines
 
