@@ -60,9 +60,14 @@ class WaterSplattingModelConfig(GaussianSplattingModelConfig):
     """The data terms are divided by stop-gradient(prediction) + this (their reg-L1 and reg-D-SSIM): errors in dark
     pixels count as much as in bright ones."""
     num_downscales: int = 2
-    """Training starts at 1 / 2^this of the data's resolution ..."""
+    """Training starts at 1 / 2^this of the data's resolution (but see min_train_size) ..."""
     resolution_schedule: int = 3000
     """... and doubles it every this many steps, up to the full resolution. Evaluation renders at full resolution."""
+    min_train_size: int = 300
+    """... and never below this many pixels on the longer side of the training images: num_downscales is lowered to
+    the largest k with that side / 2^k >= this (0: num_downscales as given). Their SeaThru-NeRF images, 1,383 px wide,
+    start at 345 px, which this leaves as it is; images of 172 px (IUI3-RedSea at --downscale-factor 8) would start
+    at 43x28 pixels, where most initial Gaussians never pass the 0.5 opacity cull (docs/table1.md)."""
     reference_steps: int = 15000
     """resolution_schedule is for a run of this many steps (their 15,000); a run of --max-num-iterations N scales it
     by N / this, so a short run keeps their proportions (full resolution from 40% of the run on; unscaled, a 6,000-step
@@ -73,7 +78,15 @@ class WaterSplattingModelConfig(GaussianSplattingModelConfig):
         check_number(self, "data_loss_eps", gt=0)
         check_number(self, "num_downscales", ge=0, integer=True)
         check_number(self, "resolution_schedule", ge=1, integer=True)
+        check_number(self, "min_train_size", ge=0, integer=True)
         check_number(self, "reference_steps", ge=0, integer=True)
+
+    def downscales_for(self, longer_side: int) -> int:
+        """num_downscales for training images whose longer side is `longer_side` pixels (`min_train_size`)."""
+        k = self.num_downscales
+        while k > 0 and longer_side / 2**k < self.min_train_size:
+            k -= 1
+        return k
 
     def resolution_schedule_for_run(self, max_num_iterations: int) -> int:
         """`resolution_schedule` for a run of `max_num_iterations` steps (`reference_steps`), at least 1."""
@@ -93,6 +106,8 @@ class WaterSplattingModel(GaussianSplattingModel):
         self.step = 0
         self.resolution_schedule = config.resolution_schedule
         """Steps between doublings of the training resolution in this run (`get_training_callbacks` scales it)."""
+        self.num_downscales = config.downscales_for(max(max(c.width, c.height) for c in self.train_cameras))
+        """Downscales of the coarse start for these training images (`min_train_size`)."""
 
     def set_step(self, step: int) -> None:
         """The training step, for the resolution schedule."""
@@ -102,7 +117,7 @@ class WaterSplattingModel(GaussianSplattingModel):
         """1 / the resolution this step trains at (1 outside training)."""
         if not self.training:
             return 1
-        return 2 ** max(self.config.num_downscales - self.step // self.resolution_schedule, 0)
+        return 2 ** max(self.num_downscales - self.step // self.resolution_schedule, 0)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         return {**super().param_groups(), MEDIUM_GROUP: list(self.direction_medium.parameters())}

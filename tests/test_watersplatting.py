@@ -157,7 +157,8 @@ def test_direction_medium_outputs_and_gradients_are_the_modules(density_bias: fl
 
 def _model():
     scene, *_ = plane_scene()
-    config = WaterSplattingModelConfig(raster=RasterSettings(backend="torch"))  # the compiled one: the slow test
+    # the compiled rasterizer: the slow test; min_train_size 0: the coarse start on these small views too
+    config = WaterSplattingModelConfig(raster=RasterSettings(backend="torch"), min_train_size=0)
     return scene, config.setup(scene=scene, train_indices=list(range(1, len(scene.cameras))))
 
 
@@ -188,6 +189,21 @@ def test_training_renders_below_full_resolution_first():
         assert out["downscale"] == factor and out["rgb"].shape == (camera.height // factor, camera.width // factor, 3)
     model.eval()
     assert model.get_outputs(camera)["rgb"].shape == (camera.height, camera.width, 3)
+
+
+def test_coarse_start_never_trains_below_the_minimum_size():
+    """Their 1/4 start is kept where it leaves at least min_train_size pixels on the longer side (1,383 px: 345) and
+    lowered where it would not (691 px: 1/2; 172 px, IUI3-RedSea at x8: full resolution); 0 keeps num_downscales."""
+    config = WaterSplattingModelConfig()
+    assert [config.downscales_for(side) for side in (1383, 1200, 1199, 691, 345, 172)] == [2, 2, 1, 1, 0, 0]
+    assert dataclasses.replace(config, min_train_size=0).downscales_for(172) == 2
+    scene, _ = _model()
+    side = max(scene.cameras[0].width, scene.cameras[0].height)
+    model = dataclasses.replace(config, raster=RasterSettings(backend="torch"), min_train_size=side // 2).setup(
+        scene=scene, train_indices=list(range(1, len(scene.cameras))))
+    model.train()
+    model.set_step(0)
+    assert model.num_downscales == 1 and model.downscale_factor() == 2
 
 
 def test_resolution_schedule_scales_with_the_run_length():
@@ -272,7 +288,7 @@ def test_short_run_trains_evaluates_exports_renders(tmp_path, cache_dir, tiny_sc
     monkeypatch.setenv("COLUMNS", "300")
     spec = METHODS["watersplatting"].config
     model = dataclasses.replace(
-        spec.model, resolution_schedule=10, reference_steps=0,
+        spec.model, resolution_schedule=10, reference_steps=0, min_train_size=0,
         densification=dataclasses.replace(spec.model.densification, refine_start=5, refine_every=5, refine_stop=15,
                                           reset_opacity_every=10, min_opacity=0.02, late_min_opacity=0.02),
         gaussians=dataclasses.replace(spec.model.gaussians, sh_degree_interval=10))
