@@ -1,15 +1,14 @@
 """A `watersplatting` training step against a `3dgs` step at equal Gaussians, on the CPU.
 
     MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=100000000000 OMP_NUM_THREADS=1 \\
-      python benchmarks/speed/watersplatting_step.py [--repeats 10] [--steps 20] [--clock wall|cpu] [--parts] \
+      python benchmarks/speed/watersplatting_step.py [--repeats 10] [--steps 20] [--clock wall|cpu] [--parts] \\
       [--points 4000]
 
 Both methods start on the built-in synthetic scene from the same `--points` initial points (4,000, the scene's
-default; a 6,000-step run ends with about 41,000 (`3dgs`) or 114,000 (`watersplatting`) there), train
-`--steps` steps without any density change (so the Gaussians stay the same in number), then one more step is timed
-for each, best of `--repeats`, the two alternating three times so both see the same drift of the machine.
-watersplatting renders at full resolution here (`--model.num-downscales 0`): equal pixels as well as equal
-Gaussians. A step is everything the
+default; a 6,000-step run ends with about 41,000 (`3dgs`) or 114,000 (`watersplatting`) there), train `--steps` steps
+without any density change (so the Gaussians stay the same in number), then one more step is timed for each, best of
+`--repeats`, the two alternating three times so both see the same drift of the machine. watersplatting renders at
+full resolution here (`--model.num-downscales 0`): equal pixels as well as equal Gaussians. A step is everything the
 Trainer does: render (for watersplatting the medium MLP and the medium compositor), losses, backward, Adam.
 `--clock cpu` times this process's CPU time instead of wall time (on a machine shared with other work, the wall
 time of a one-thread step mostly measures the others). `--parts` also times, on the watersplatting model's
