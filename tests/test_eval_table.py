@@ -182,6 +182,25 @@ def test_a_run_that_cannot_be_evaluated_is_skipped_with_its_reason(runs, capsys)
     assert json.loads(captured.out)[0]["n"] == 3
 
 
+def test_a_run_still_training_is_skipped_not_evaluated_mid_run(runs, capsys):
+    from uw3dgs.engine.run_folder import RunLock
+
+    training = fake_run(runs, "reef", "3dgs", 9, None)
+    (training / "checkpoints").mkdir()
+    (training / "checkpoints" / "step-000050.ckpt").write_bytes(b"")  # a mid-run checkpoint
+    lock = RunLock(training)
+    lock.acquire()  # as uw-train holds it from setup to the end of training
+    try:
+        uw_eval(["table", str(runs), "--format", "json"])
+    finally:
+        lock.release()
+    captured = capsys.readouterr()
+    assert f"evaluating {training}" not in captured.err
+    assert f"skipped {training}: still training (pid {os.getpid()}" in captured.err
+    assert "run uw-eval table again when it has ended" in captured.err
+    assert json.loads(captured.out)[0]["n"] == 3
+
+
 def test_results_of_an_earlier_checkpoint_are_stale(runs, capsys):
     run = runs / "wreck" / "3dgs" / "seed0"
     (run / "checkpoints").mkdir()

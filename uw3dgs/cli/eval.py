@@ -150,6 +150,7 @@ class TableArgs:
 def run_table(args: TableArgs) -> str:
     """Find the runs, evaluate those without results (unless --no-eval), and render the table."""
     from uw3dgs.engine import results_table as rt
+    from uw3dgs.engine.run_folder import lock_holder
     from uw3dgs.utils.io import unwritable_reason
 
     if not args.runs:
@@ -165,6 +166,10 @@ def run_table(args: TableArgs) -> str:
         raise ValueError(f"--output {args.output}: {problem}")
     runs, skipped, to_evaluate = [], [], []
     for run_dir in run_dirs:
+        holder = lock_holder(run_dir)
+        if holder is not None:  # its checkpoints are mid-run: evaluating one would file a number for an unfinished run
+            skipped.append(f"{run_dir}: still training ({holder}); run uw-eval table again when it has ended")
+            continue
         try:
             data = rt.read_results(run_dir)
         except ValueError as exc:
