@@ -17,7 +17,7 @@ from conftest import QUICK_REPORT_ARGS
 
 from uw3dgs.bench.cell import LOG_NAME, State, cell_state, config_differences
 from uw3dgs.bench.executors import local_threads
-from uw3dgs.bench.grid import GridError, load_grid
+from uw3dgs.bench.grid import GridError, load_grid, select_cells
 from uw3dgs.engine.checkpoint import list_checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,6 +73,28 @@ variants: {plain: [], att: [--model.paup.attenuation-weight, 1]}
     reef = next(c for c in cells if c.dataset == "reef")
     assert reef.argv[reef.argv.index("--data") + 1] == "/data/reef"
     assert load_grid(tmp_path / "g.yaml", data_root=Path("/else")).cells()[0].argv[-1] == "/else/reef"
+
+
+def test_cells_are_selected_by_method_dataset_variant_and_seed(tmp_path):
+    grid = load_grid(write(tmp_path / "g.yaml", """
+methods: [3dgs, uw3dgs]
+datasets: {reef: {data: reef}, synth: {}}
+seeds: [0, 1, 2]
+variants: {plain: [], att: [--model.paup.attenuation-weight, 1]}
+"""))
+    assert select_cells(grid) == grid.cells()
+    chosen = select_cells(grid, methods=["uw3dgs"], variants=["plain"], seeds=[0, 2])
+    assert [c.name for c in chosen] == ["reef/uw3dgs [plain]/s0", "reef/uw3dgs [plain]/s2",
+                                        "synth/uw3dgs [plain]/s0", "synth/uw3dgs [plain]/s2"]
+    assert [c.name for c in select_cells(grid, datasets=["synth"], variants=["att"], seeds=[1])] == [
+        "synth/3dgs [att]/s1", "synth/uw3dgs [att]/s1"]
+    with pytest.raises(GridError, match=r"--methods uw3gds: not in the grid, whose methods are 3dgs, uw3dgs"):
+        select_cells(grid, methods=["uw3gds"])
+    with pytest.raises(GridError, match=r"--seeds 5: not in the grid, whose seeds are 0, 1, 2"):
+        select_cells(grid, seeds=[5])
+    plain = load_grid(write(tmp_path / "p.yaml", "methods: [3dgs]\ndatasets: {s: {}}\nseeds: [0]\n"))
+    with pytest.raises(GridError, match=r"--variants att: not in the grid, whose variants are none"):
+        select_cells(plain, variants=["att"])
 
 
 @pytest.mark.parametrize("text, needle", [
@@ -132,6 +154,27 @@ def results_of(out: Path) -> dict[str, dict]:
     return {str(p.relative_to(out)): {k: v for k, v in json.loads(p.read_text())["results"].items()
                                       if k != "train_seconds"}
             for p in sorted(out.glob("*/*/*/eval/results.json"))}
+
+
+@pytest.mark.slow
+def test_a_selection_runs_only_its_cells_and_the_rest_are_listed(tmp_path, cache_dir):
+    out = tmp_path / "out"
+    grid_file = write(tmp_path / "grid.yaml", TINY_GRID.format(out=out, steps=5, quick_report=QUICK))
+    env = {**os.environ, "UW3DGS_CACHE": str(cache_dir), "OMP_WAIT_POLICY": "passive"}
+    typo = bench(str(grid_file), "--methods", "3dgs", "uw3gds", "--dry-run", env=env)
+    output, _ = typo.communicate(timeout=120)
+    assert typo.returncode == 2 and "--methods uw3gds: not in the grid, whose methods are 3dgs, uw3dgs" in output
+    dry = bench(str(grid_file), "--methods", "3dgs", "--seeds", "0", "--dry-run", env=env)
+    output, _ = dry.communicate(timeout=120)
+    assert dry.returncode == 0 and "1 of them selected" in output
+    assert "tiny/3dgs/s0: new (" in output and output.count(", not selected)") == 3
+    run = bench(str(grid_file), "--methods", "3dgs", "--seeds", "0", "--threads-per-job", "1", env=env)
+    output, _ = run.communicate(timeout=300)
+    assert run.returncode == 0, output
+    assert list(results_of(out)) == ["tiny/3dgs/s0/eval/results.json"]
+    table = (out / "table.md").read_text()
+    assert "| `3dgs` | 1 |" in table and "`uw3dgs`" not in table.split("Not in the table")[0]
+    assert "tiny/uw3dgs/s1: not selected: not chosen by --methods/--datasets/--variants/--seeds" in table
 
 
 @pytest.fixture(scope="module")

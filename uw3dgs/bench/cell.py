@@ -58,7 +58,8 @@ class State(str, Enum):
 class Outcome:
     cell: Cell
     status: str
-    """'done' (results available), 'failed', 'interrupted' (resumable) or 'conflict'."""
+    """'done' (results available), 'failed', 'interrupted' (resumable), 'conflict' or 'not selected' (left out by
+    uw-bench's --methods/--datasets/--variants/--seeds)."""
     message: str = ""
     results: dict[str, Any] | None = None
     """uw-eval's JSON of the run."""

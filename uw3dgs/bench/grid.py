@@ -98,6 +98,24 @@ class Grid:
         return out
 
 
+def select_cells(grid: Grid, methods=(), datasets=(), variants=(), seeds=()) -> list[Cell]:
+    """The grid's cells with each given axis restricted to the values named (an empty axis: all of it); a value the
+    grid does not have is an error naming the ones it has (a typo must not select nothing, silently)."""
+    have = {"methods": tuple(grid.methods), "datasets": tuple(d.name for d in grid.datasets),
+            "variants": tuple(v for v in grid.variants if v), "seeds": tuple(grid.seeds)}
+    asked = {"methods": tuple(methods), "datasets": tuple(datasets), "variants": tuple(variants),
+             "seeds": tuple(seeds)}
+    for axis, values in asked.items():
+        unknown = [v for v in values if v not in have[axis]]
+        if unknown:
+            raise GridError(f"{grid.path}: --{axis} {' '.join(map(str, unknown))}: not in the grid, whose {axis} are "
+                            f"{', '.join(map(str, have[axis])) or 'none'}")
+    return [cell for cell in grid.cells()
+            if all(not asked[axis] or value in asked[axis] for axis, value in (
+                ("methods", cell.method), ("datasets", cell.dataset), ("variants", cell.variant),
+                ("seeds", cell.seed)))]
+
+
 def train_argv(method: str, dataset: Dataset, flags: tuple[str, ...], seed: int, output_dir: Path,
                timestamp: str) -> tuple[str, ...]:
     """uw-train's arguments for one cell: the method, its flags, then the datamanager subcommand and its flags."""

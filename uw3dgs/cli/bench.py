@@ -45,6 +45,14 @@ class BenchArgs:
     """List every cell, what is left to do for it and its uw-train command; run nothing."""
     table: bool = True
     """Write the table at the end (--no-table: only run the cells)."""
+    methods: tuple[str, ...] = ()
+    """Run only the cells of these methods (default: all); the table still shows every finished cell."""
+    datasets: tuple[str, ...] = ()
+    """Run only the cells of these datasets (the grid's names for them; default: all)."""
+    variants: tuple[str, ...] = ()
+    """Run only the cells of these variants (the grid's `variants:` names; default: all)."""
+    seeds: tuple[int, ...] = ()
+    """Run only the cells of these seeds (default: all)."""
 
 
 def plan(args: BenchArgs, grid):
@@ -101,8 +109,8 @@ def write_table(grid, outcomes, print_to=sys.stdout) -> None:
 
 
 def run_bench(args: BenchArgs) -> int:
-    """Run the grid; the exit status: 0 when every cell is done, 1 otherwise (the table shows what is done). The
-    grid's output folder is locked for the whole run (a --dry-run only reads it)."""
+    """Run the grid; the exit status: 0 when every selected cell is done, 1 otherwise (the table shows what is
+    done). The grid's output folder is locked for the whole run (a --dry-run only reads it)."""
     from uw3dgs.bench.grid import load_grid
     from uw3dgs.bench.lock import grid_lock
 
@@ -120,16 +128,21 @@ def run_bench(args: BenchArgs) -> int:
 def _run_locked(args: BenchArgs, grid) -> int:
     from uw3dgs.bench.cell import Outcome, State
     from uw3dgs.bench.executors import available_cores, local_threads, run_local, run_ray
+    from uw3dgs.bench.grid import select_cells
     from uw3dgs.bench.view import GridView
     from uw3dgs.engine.results_table import read_results
 
     cells, states = plan(args, grid)
+    selected = {cell.name for cell in select_cells(grid, args.methods, args.datasets, args.variants, args.seeds)}
     counts = {s: sum(1 for state, _ in states if state is s) for s in State}
     info(f"{args.grid}: {len(cells)} cells in {grid.output_dir}: "
          + ", ".join(f"{n} {s.value}" for s, n in counts.items() if n))
+    if len(selected) < len(cells):
+        info(f"{len(selected)} of them selected (--methods/--datasets/--variants/--seeds); the others are not run")
     if args.dry_run:
         for cell, (state, why) in zip(cells, states, strict=True):
-            print(f"{cell.name}: {state.value} ({why})\n    uw-train {' '.join(cell.argv)}", flush=True)
+            chosen = "" if cell.name in selected else ", not selected"
+            print(f"{cell.name}: {state.value} ({why}{chosen})\n    uw-train {' '.join(cell.argv)}", flush=True)
         return 0
     outcomes = [Outcome(cell, "done", why, read_results(cell.run_dir))
                 for cell, (state, why) in zip(cells, states, strict=True) if state is State.DONE]
@@ -138,7 +151,10 @@ def _run_locked(args: BenchArgs, grid) -> int:
     for outcome in outcomes:
         if outcome.status == "conflict":
             warn(f"{outcome.cell.name}: {outcome.message}")
-    todo = [cell for cell, (state, _) in zip(cells, states, strict=True) if state not in (State.DONE, State.CONFLICT)]
+    left = [cell for cell, (state, _) in zip(cells, states, strict=True) if state not in (State.DONE, State.CONFLICT)]
+    todo = [cell for cell in left if cell.name in selected]
+    outcomes += [Outcome(cell, "not selected", "not chosen by --methods/--datasets/--variants/--seeds")
+                 for cell in left if cell.name not in selected]
     if todo:
         # SIGTERM (a scheduler, kill) stops the grid like Ctrl-C: the running cells checkpoint, the next run resumes.
         # Installed here, after the imports: pycolmap's glog installs its own SIGTERM handler when first imported.
@@ -158,7 +174,7 @@ def _run_locked(args: BenchArgs, grid) -> int:
     outcomes.sort(key=lambda o: order[o.cell.name])
     if args.table:
         write_table(grid, outcomes)
-    return 0 if all(o.status == "done" for o in outcomes) else 1
+    return 0 if all(o.status in ("done", "not selected") for o in outcomes) else 1
 
 
 def _sigterm_as_interrupt(signum: int, frame: object) -> None:
