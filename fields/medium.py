@@ -14,6 +14,7 @@ query at half the range), which is the Beer-Lambert integral for a medium that v
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -166,10 +167,21 @@ class MediumGridConfig(MediumFieldConfig):
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
     """The scene box is the bounds of cameras and initial points, padded by this fraction per side."""
+    factor_grid: int = 32
+    """A start that varies in space (init 'multiview' where the multi-view field fit pins the betas,
+    fields/medium_varying.py): L_beta's targets vary by the fitted factor, kept on a grid of this many cells per axis
+    over the box (trilinear reads)."""
+    distill_steps: int = 200
+    """Such a start is written into the VM factors by this many Adam steps (`distill_lr`) fitting log beta to the
+    target at random points of the box and at the initial points."""
+    distill_lr: float = 0.02
 
     def check_options(self) -> None:
         super().check_options()
         check_number(self, "resolution", ge=2, integer=True)
+        check_number(self, "factor_grid", ge=2, integer=True)
+        check_number(self, "distill_steps", ge=0, integer=True)
+        check_number(self, "distill_lr", gt=0)
         check_number(self, "components", ge=1, integer=True)
         check_number(self, "init_std", ge=0)
         check_number(self, "factor_penalty_weight", ge=0)
@@ -291,6 +303,20 @@ class MediumField(Medium):
         """The field's own regularizer, added to L_beta's pull (None: nothing to add)."""
         return None
 
+    def set_factor(self, factor: Callable[[Tensor], Tensor], points: Tensor) -> None:
+        """Make the betas vary as `factor` (world points [N, 3] -> [N] > 0) times their present values, and L_beta
+        pull toward that field; `points` [P, 3] are where the scene is (the initial points). A field that cannot vary
+        takes the factor's mean over the points."""
+        with torch.no_grad():
+            mean = factor(points).float().mean().to(self.prior_d)
+            d, b = (x[0] for x in self.betas(points[:1].float()))
+            self.set_homogeneous(d * mean, b * mean, self.b_inf.detach().clone())
+            self.set_prior(self.prior_d * mean, self.prior_b * mean)
+
+    def prior_factor_at(self, points: Tensor) -> Tensor | None:
+        """[N, 1] the factor L_beta's targets vary by at `points` [N, 3] (None: they are the same everywhere)."""
+        return None
+
     @torch.no_grad()
     def set_prior(self, beta_d: Tensor, beta_b: Tensor) -> None:
         """Make L_beta pull beta_D and beta_B toward these RGB values [3] instead of beta_prior."""
@@ -307,7 +333,10 @@ class MediumField(Medium):
         """L_beta (scalar): pull of both fields toward their priors at `points` [N, 3], weighted per point by
         `weights` [N] (a mean over the points), plus the field's own penalty."""
         beta_d, beta_b = self.betas(points)
-        dev = (beta_d - self.prior_d).square().sum(-1) + (beta_b - self.prior_b).square().sum(-1)
+        factor = self.prior_factor_at(points)
+        prior_d, prior_b = (self.prior_d, self.prior_b) if factor is None else \
+            (self.prior_d * factor, self.prior_b * factor)
+        dev = (beta_d - prior_d).square().sum(-1) + (beta_b - prior_b).square().sum(-1)
         pull = dev.mean() if weights is None else (weights * dev).mean()
         penalty = self.factor_penalty()
         return pull if penalty is None else pull + penalty
@@ -325,6 +354,10 @@ class MediumGrid(MediumField):
         """Both fields read in one compiled pass where `use_compiled` says so (PyTorch's grid_sample otherwise)."""
         self.beta_d = VMField(*args)
         self.beta_b = VMField(*args)
+        g = config.factor_grid
+        self.register_buffer("prior_factor", torch.ones(1, 1, g, g, g))
+        """L_beta's targets' factor over the box [1, 1, G, G, G] (z, y, x, as grid_sample reads them)."""
+        self.register_buffer("prior_varies", torch.tensor(False))
         if not config.learn_beta:
             self.beta_d.requires_grad_(False)
             self.beta_b.requires_grad_(False)
@@ -360,6 +393,43 @@ class MediumGrid(MediumField):
 
     def box(self) -> tuple[Tensor, Tensor]:
         return self.box_min, self.box_max
+
+    def prior_factor_at(self, points: Tensor) -> Tensor | None:
+        if not bool(self.prior_varies):
+            return None
+        u = self.normalize(points)
+        return F.grid_sample(self.prior_factor, u.view(1, -1, 1, 1, 3), align_corners=True).view(-1, 1)
+
+    @torch.enable_grad()
+    def set_factor(self, factor: Callable[[Tensor], Tensor], points: Tensor) -> None:
+        """The betas become their present (flat) values times `factor`: kept on the box's grid as L_beta's target
+        (`factor_grid`), and written into both VM fields by `distill_steps` Adam steps on log beta at random points
+        of the box and at `points`, each step a fresh draw."""
+        g = self.config.factor_grid
+        with torch.no_grad():
+            axis = torch.linspace(0, 1, g)
+            grid = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), dim=-1)  # [G, G, G, 3] as (x, y, z)
+            corners = self.box_min + grid.reshape(-1, 3) * (self.box_max - self.box_min)
+            self.prior_factor.copy_(factor(corners).float().view(g, g, g).permute(2, 1, 0)[None, None])
+            self.prior_varies.fill_(True)
+            flat = [x[:1].clone() for x in self.betas(points[:1].float())]
+        generator = torch.Generator().manual_seed(0)
+        scene = points.float()
+        for field_, value in zip((self.beta_d, self.beta_b), flat, strict=True):
+            learned = [p.requires_grad for p in field_.parameters()]
+            field_.requires_grad_(True)  # also where learn_beta holds the betas: they are held at this start
+            optimizer = torch.optim.Adam(field_.parameters(), lr=self.config.distill_lr)
+            for _ in range(self.config.distill_steps):
+                inside = self.box_min + torch.rand(1024, 3, generator=generator) * (self.box_max - self.box_min)
+                where = torch.cat([inside, scene[torch.randint(len(scene), (1024,), generator=generator)]])
+                with torch.no_grad():
+                    target = (value * self.prior_factor_at(where)).log()
+                loss = (field_(self.normalize(where)).clamp_min(1e-8).log() - target).square().mean()
+                optimizer.zero_grad()
+                loss.backward()
+                optimizer.step()
+            for p, flag in zip(field_.parameters(), learned, strict=True):
+                p.requires_grad_(flag)
 
     def normalize(self, x: Tensor) -> Tensor:
         """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""

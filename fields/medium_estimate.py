@@ -250,16 +250,18 @@ def estimate_medium(points: Tensor, point_colors: Tensor, cameras: list[Camera],
 
 def dehazed_colors(points: Tensor, point_colors: Tensor, cameras: list[Camera], dataset_scale: float,
                    medium: tuple[Tensor, Tensor, Tensor], observed: tuple[Tensor, Tensor, Tensor],
-                   sfm_cameras: list[Camera] | None = None) -> Tensor:
+                   sfm_cameras: list[Camera] | None = None, factor: Tensor | None = None) -> Tensor:
     """[P, 3] the clean colours of `points` [P, 3] through the homogeneous `medium` (beta_D, beta_B, B_inf [3], per
     dataset unit): from their `observed` = `observe_points(points, cameras, images)`, or, for a point no view sees,
     its SfM colour `point_colors` [P, 3] at the range it was seen from (`color_ranges` over `sfm_cameras`, the
-    training `cameras` when None); see `estimate_medium`."""
+    training `cameras` when None); see `estimate_medium`. `factor` [P] scales the betas per point for a medium that
+    varies in space (taken as the mean along each of its rays: a start, which training refines)."""
     idx, obs, ranges = observed
-    seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale
+    scale = torch.ones(len(points)) if factor is None else factor.float()
+    seen_at = color_ranges(points, cameras if sfm_cameras is None else sfm_cameras) * dataset_scale * scale
     colors = clean_colors(torch.arange(len(points)), point_colors.detach().float(), seen_at, *medium)
     observed_ids, local = torch.unique(idx, return_inverse=True)
-    colors[observed_ids] = clean_colors(local, obs.float(), ranges * dataset_scale, *medium)
+    colors[observed_ids] = clean_colors(local, obs.float(), ranges * dataset_scale * scale[idx], *medium)
     return colors
 
 

@@ -13,9 +13,12 @@ identified by range diversity, else the single-image one (identified by the far 
 identified). The multi-view fit is then made with B_inf held where it did not come from it, so the betas of a
 channel are fitted with the B_inf used. Each beta is taken from the estimate that identifies it, the one with the
 smaller spread where both do; where neither does, the single-image value is kept (today's start) and reported as
-not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either, nor
-are any where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a
-homogeneous value is an average).
+not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either.
+Where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a homogeneous value
+is an average), the betas come from the multi-view field fit (fields/medium_varying.py) where its bootstrap pins
+every beta and B_inf, reported as identified by range diversity, varying in space (B_inf fitted with the field,
+even where open water seemed in view; `EvidenceReport.factor` is then the field's factor); else no beta is
+identified.
 """
 
 from __future__ import annotations
@@ -31,8 +34,10 @@ from torch import Tensor
 from uw3dgs.fields.medium_estimate import MediumEstimate
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport
 from uw3dgs.fields.medium_multiview import CHANNELS, PARAMETERS, MultiviewEstimate
+from uw3dgs.fields.medium_varying import FactorField
 
 RANGE_DIVERSITY = "range diversity"
+VARYING = "range diversity, varying in space"
 OPEN_WATER = "open water"
 DARK_PIXELS = "dark pixels"
 FAR_END = "the far end of the ranges"
@@ -45,7 +50,8 @@ class EvidenceCheck:
     channel: str
     value: float
     source: str
-    """Which evidence identifies it: RANGE_DIVERSITY, OPEN_WATER, DARK_PIXELS, FAR_END, or NOT_IDENTIFIED."""
+    """Which evidence identifies it: RANGE_DIVERSITY, VARYING (a beta of the field fit: its value where the factor
+    is 1), OPEN_WATER, DARK_PIXELS, FAR_END, or NOT_IDENTIFIED."""
     single: float
     """The single-image estimate's value."""
     multiview: float
@@ -58,6 +64,9 @@ class EvidenceCheck:
 class EvidenceReport:
     checks: list[EvidenceCheck] = field(default_factory=list)
     multiview_lines: list[str] = field(default_factory=list)
+    factor: FactorField | None = None
+    """The betas' factor across the scene where they come from the field fit (source VARYING): beta(x) = the
+    value x factor(x); None: a homogeneous medium."""
 
     def value(self, name: str) -> Tensor:
         return torch.tensor([c.value for c in self.checks if c.name == name], dtype=torch.float32)
@@ -76,7 +85,9 @@ class EvidenceReport:
         return out
 
     def to_json(self) -> dict:
-        return asdict(self)
+        out = asdict(self)
+        out["factor"] = None if self.factor is None else self.factor.to_json()
+        return out
 
 
 def _single_verdict(report: IdentifiabilityReport | None, name: str, c: int) -> tuple[bool, float, str]:
@@ -116,6 +127,10 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
         open_water is not None and bool((hold == open_water.double()).all())) else fit_multiview(hold)
     result = EvidenceReport(multiview_lines=multiview.lines())
     varies = bool(getattr(report, "varies_in_space", False)) or free.varies_in_space or multiview.varies_in_space
+    field_fit = multiview.varying
+    if varies and field_fit is not None and field_fit.all_betas_identified and all(field_fit.identified["B_inf"]):
+        result.factor = field_fit.fit.factor  # B_inf too: the field fit's, fitted with it (even over open water)
+        b_inf, b_source, b_reason = field_fit.fit.b_inf.tolist(), [VARYING] * 3, [""] * 3
     for name in PARAMETERS:
         for c in range(3):
             multi = multiview.check(name, c)
@@ -125,9 +140,14 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
                                                    multi.value, b_reason[c]))
                 continue
             ok, uncertainty, why = _single_verdict(report, name, c)
+            if result.factor is not None:  # the field fit pins every beta: its value where the factor is 1
+                value = float((field_fit.fit.beta_d if name == "beta_D" else field_fit.fit.beta_b)[c])
+                result.checks.append(EvidenceCheck(name, CHANNELS[c], value, VARYING, single_value, multi.value))
+                continue
             if varies:  # a homogeneous value is an average, whichever estimate it comes from
+                fitted = "" if field_fit is None else ", and the field fit's bootstrap does not pin every beta"
                 multi = dataclasses.replace(multi, identified=False, reason="the halves of the scene disagree: the "
-                                            "medium varies in space")
+                                            f"medium varies in space{fitted}")
                 ok, why = False, multi.reason
             if b_source[c] == NOT_IDENTIFIED:  # the multi-view betas were fitted with a B_inf nothing pins
                 multi = dataclasses.replace(multi, identified=False,

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import Tensor
@@ -33,6 +33,9 @@ from torch import Tensor
 from uw3dgs.cameras import Camera
 from uw3dgs.fields.medium_identifiability import bootstrap_observations, principal_axes
 from uw3dgs.options import CheckedConfig, OptionError, check_number
+
+if TYPE_CHECKING:
+    from uw3dgs.fields.medium_varying import VaryingEstimate
 
 CHANNELS = "RGB"
 PARAMETERS = ("beta_D", "beta_B", "B_inf")
@@ -105,6 +108,17 @@ class MultiviewConfig(CheckedConfig):
     match_footprint: bool = True
     """Read each view's colour off the image blurred to about the surface patch the point's farthest view's pixel
     covers (`visible_observations`); False: nearest-pixel reads."""
+    field_nodes: int = 7
+    """Where the halves disagree (the medium varies in space), the betas are fitted as a field: a factor on a grid of
+    this many nodes along each of the points' two main axes, at evenly spaced quantiles of the points
+    (fields/medium_varying.py). 0: no field fit (the betas are then not identified, as before)."""
+    field_resamples: int = 6
+    """Bootstrap refits of the field fit (each from the whole fit)."""
+    field_samples: int = 8
+    """Samples along each observation's ray for the field's mean over the path (midpoint rule)."""
+    field_smoothness: float = 0.01
+    """Weight of the squared differences of neighbouring nodes' log factors, per pair of nodes, in units of the
+    robust cost of the observations per node at the loss scale: it fills nodes no ray crosses."""
 
     def check_options(self) -> None:
         super().check_options()
@@ -117,6 +131,12 @@ class MultiviewConfig(CheckedConfig):
             check_number(self, name, ge=1, integer=True)
         check_number(self, "seed", ge=0, integer=True)
         check_number(self, "depth_cell", ge=0, integer=True)
+        check_number(self, "field_nodes", ge=0, integer=True)
+        if self.field_nodes == 1:
+            raise OptionError("field_nodes", "must be 0 (no field fit) or at least 2")
+        check_number(self, "field_samples", ge=1, integer=True)
+        check_number(self, "field_resamples", ge=1, integer=True)
+        check_number(self, "field_smoothness", ge=0)
         check_number(self, "spatial_tolerance", ge=0)
         check_number(self, "spatial_min_channels", ge=1, le=3, integer=True)
         for name in ("tolerance", "loss_scale", "depth_tolerance", "color_drift"):
@@ -129,12 +149,12 @@ class MultiviewConfig(CheckedConfig):
 # ------------------------------------------------------------------------------------------------ observations
 
 def visible_observations(points: Tensor, cameras: list[Camera], images: list[Tensor], depth_cell: int = 4,
-                         depth_tolerance: float = 0.1, match_footprint: bool = True
-                         ) -> tuple[Tensor, Tensor, Tensor]:
+                         depth_tolerance: float = 0.1, match_footprint: bool = True, with_views: bool = False
+                         ) -> tuple[Tensor, ...]:
     """Colours and ranges of `points` [P, 3] (world units) in every view where they land in the image in front of
     the camera and pass the depth test: no other point projecting into the same `depth_cell` x `depth_cell` pixel
     cell lies nearer than range / (1 + `depth_tolerance`) (0: no test). Returns (point index [M], colour [M, 3],
-    range [M] in world units: the distance from the camera centre).
+    range [M] in world units: the distance from the camera centre), and with `with_views` the view index [M].
 
     With `match_footprint` a view's colour is read off the image blurred to the surface patch the point's farthest
     view's pixel covers: a pixel is a box of 1 pixel (variance 1/12), the farthest view's pixel is z_max / z of this
@@ -172,6 +192,9 @@ def visible_observations(points: Tensor, cameras: list[Camera], images: list[Ten
             pick = level == j
             color[pick] = _blurred(image, BLUR_LEVELS[j])[row[pick], col[pick]]
         colors.append(color)
+    if with_views:
+        views = torch.cat([torch.full((len(s[1]),), s[0], dtype=torch.long) for s in seen])
+        return index, torch.cat(colors), ranges, views
     return index, torch.cat(colors), ranges
 
 
@@ -500,6 +523,9 @@ class MultiviewEstimate:
     upper: list[list[float]] | None = None
     """[3 parameters (beta_D, beta_B, B_inf)][3 channels] the bootstrap's 95% quantile, at least the fit's value:
     an upper bound in absolute units (what the water verdict reads; the relative spreads explode near 0)."""
+    varying: VaryingEstimate | None = None
+    """Where the medium varies in space and the rays are known: the betas fitted as a field
+    (fields/medium_varying.py)."""
 
     def check(self, name: str, c: int) -> MultiviewCheck:
         return next(x for x in self.checks if x.name == name and x.channel == CHANNELS[c])
@@ -516,6 +542,8 @@ class MultiviewEstimate:
             halves = self.halves_text()
             out.append(f"multi-view: halves of the scene give beta_D {halves} apart: "
                        f"{'varies in space' if self.varies_in_space else 'homogeneous within the tolerance'}")
+        if self.varying is not None:
+            out += self.varying.lines()
         lo, mid, hi = self.span_ratio
         out.append(f"multi-view: {self.points} points seen over a range span, {self.span_points} of them over a "
                    f"ratio >= its threshold; span ratio {lo:.2f}/{mid:.2f}/{hi:.2f} (10/50/90%), median span "
@@ -528,7 +556,9 @@ class MultiviewEstimate:
                                                                    self.spatial_difference or [], strict=True))
 
     def to_json(self) -> dict:
-        out = {k: v for k, v in asdict(self).items() if k != "fit"}
+        out = {k: v for k, v in asdict(self).items() if k not in ("fit", "varying")}
+        if self.varying is not None:
+            out["varying"] = self.varying.to_json()
         if self.fit is not None:
             out["medium"] = {name: t.tolist() for name, t in zip(PARAMETERS, self.fit.medium, strict=True)}
         return out
@@ -539,17 +569,21 @@ def observe_and_estimate(points: Tensor, cameras: list[Camera], images: list[Ten
     """`multiview_estimate` of the `points` [P, 3] (world units) seen in the views (`visible_observations`), the
     betas per dataset unit (ranges x `dataset_scale`)."""
     config = config or MultiviewConfig()
-    point, color, z = visible_observations(points, cameras, images, config.depth_cell, config.depth_tolerance,
-                                           config.match_footprint)
-    return multiview_estimate(point, color, z * dataset_scale, config, b_inf, positions=points)
+    point, color, z, view = visible_observations(points, cameras, images, config.depth_cell, config.depth_tolerance,
+                                                 config.match_footprint, with_views=True)
+    origins = torch.stack([cam.center.double() for cam in cameras])[view]
+    return multiview_estimate(point, color, z * dataset_scale, config, b_inf, positions=points, origins=origins)
 
 
 def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: MultiviewConfig | None = None,
-                       b_inf: Tensor | None = None, positions: Tensor | None = None) -> MultiviewEstimate:
+                       b_inf: Tensor | None = None, positions: Tensor | None = None,
+                       origins: Tensor | None = None) -> MultiviewEstimate:
     """The multi-view medium of observations color [M, 3] of points point [M] (any ids) at ranges z [M] (the unit
     of the betas), with a bootstrap over points and a verdict per parameter and channel (module doc). `b_inf` [3]
     holds B_inf where it is not NaN (read off open water, say): those are reported as held, not identified here.
-    `positions` [P, 3] (indexed by the ids of `point`) allow the check of a medium that varies across the scene."""
+    `positions` [P, 3] (indexed by the ids of `point`) allow the check of a medium that varies across the scene;
+    with `origins` [M, 3] too (each observation's camera centre, the positions' units) a medium found varying is
+    fitted as a field (`config.field_nodes`, fields/medium_varying.py)."""
     config = config or MultiviewConfig()
     ids, point = torch.unique(point.long(), return_inverse=True)
     count, ratio = point_spans(point, z, len(ids))
@@ -603,6 +637,14 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
     if result.spatial_disagreement is not None:
         result.varies_in_space = sum(d > config.spatial_tolerance and d > 2 * float(spread[0, c])
                                      for c, d in enumerate(result.spatial_disagreement)) >= config.spatial_min_channels
+    if result.varies_in_space and origins is not None and config.field_nodes > 0:
+        from uw3dgs.fields.medium_varying import varying_estimate  # it builds on this module's fit
+
+        ends = positions.double()[ids[point[rows]][sub]]
+        # B_inf is fitted with the field even where it was given: in water that varies, what looks like open water
+        # can be veiled seabed (the survey-gradient variant reads it 5-9% high with no open water in the scene)
+        result.varying = varying_estimate(sub_ids, obs[1][sub], obs[2][sub], origins.double()[rows][sub], ends,
+                                          weights[sub], fit, positions.double()[ids], None, config)
     checks: dict[tuple[str, int], MultiviewCheck] = {}
     for k, name in reversed(list(enumerate(PARAMETERS))):  # B_inf, beta_B, beta_D: each leans on the ones before
         for c in range(3):

@@ -7,6 +7,7 @@ import copy
 import dataclasses
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -322,7 +323,9 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     assert all(len(cell.split(" / ")) == 3 for r in fields[2:] for cell in r[2:])
     # and the spread of the trained field: a homogeneous one has none, and no correlation with the truth
     spread = [cells(r) for r in lines if r.count("|") == 7]
-    assert spread[2] == ["plume-homogeneous", "0/0/0", "-/-/-", "0/0/0", "-/-/-", spread[2][-1]]
+    assert spread[2][0] == "plume-homogeneous" and spread[2][1] == spread[2][3] == "0/0/0"
+    # no correlation, and no amplitude against the plume's true spread
+    assert spread[2][2] == spread[2][4] == "-/-/- ; 0.00/0.00/0.00"
     assert float(spread[2][-1]) > 0  # the UWI's PSNR
     # and the URI where the water leaves the seabed recoverable (the report's range), as well as on the whole image
     recoverable = [cells(r) for r in lines if r.count("|") == 8]
@@ -348,11 +351,16 @@ def test_medium_recovery_survey_rows_start_from_the_combined_estimate(tmp_path, 
     name = "survey-2-passes-no-open-water"
     assert script.VARIANTS[name] == ({"pass_altitudes": (3.0, 6.0), "open_water": False}, script.MULTIVIEW)
     argv = ["--steps", "5", "--variants", name, "--output-dir", str(tmp_path), "--cache-dir", str(cache_dir),
-            "--scene", "width=48", "--scene", "height=36", "--scene", "num_views=12", "--scene", "num_points=600"]
+            "--scene", "width=48", "--scene", "height=36", "--scene", "num_views=12", "--scene", "num_points=600",
+            "--seeds", "0", "1"]
     script.main(argv)
     out = capsys.readouterr().out
-    row = json.loads((tmp_path / name / "row.json").read_text())
-    evidence = json.loads(next((tmp_path / name).glob("**/notes/medium_evidence.json")).read_text())
+    row = json.loads((tmp_path / "s0" / name / "row.json").read_text())
+    evidence = json.loads(next((tmp_path / "s0" / name).glob("**/notes/medium_evidence.json")).read_text())
+    # --seeds: a run and a row per seed, each trained with its seed
+    for seed in (0, 1):
+        config = next((tmp_path / f"s{seed}" / name).glob("**/config.yml")).read_text()
+        assert re.search(rf"^seed: {seed}$", config, re.MULTILINE)
     start = row["start"]
     for key, parameter in (("beta_d", "beta_D"), ("beta_b", "beta_B"), ("b_inf", "B_inf")):
         values = [c["value"] for c in evidence["checks"] if c["name"] == parameter]
@@ -360,7 +368,8 @@ def test_medium_recovery_survey_rows_start_from_the_combined_estimate(tmp_path, 
         assert start["sources"][parameter] == [c["source"] for c in evidence["checks"] if c["name"] == parameter]
     assert start["weak"] == [f"{c['name']} {c['channel']}" for c in evidence["checks"]
                              if c["source"] == "not identified"]
-    (line,) = [cells(r) for r in out.splitlines() if r.startswith(f"| {name} |") and r.count("|") == 9]
+    (line,) = [cells(r) for r in out.splitlines() if r.startswith(f"| {name} (seed 0) |") and r.count("|") == 9]
+    assert sum(r.startswith(f"| {name} (seed 1) |") and r.count("|") == 9 for r in out.splitlines()) == 1
     assert line[1] == " ; ".join(script.percents(start["errors"][p]) for p in script.PARAMETERS)
 
 

@@ -33,7 +33,7 @@ from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.fields.medium import MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_from_views, estimate_medium, open_water_color
-from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED, combine_by_evidence
+from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED, VARYING, combine_by_evidence
 from uw3dgs.fields.medium_identifiability import assess_medium
 from uw3dgs.fields.medium_multiview import observe_and_estimate
 
@@ -71,9 +71,14 @@ def survey_row(name: str, options: dict) -> str:
     beta_d, beta_b, b_inf = combined.medium
     multi = SimpleNamespace(beta_d=free.fit.beta_d, beta_b=free.fit.beta_b, b_inf=free.fit.b_inf)
     both = SimpleNamespace(beta_d=beta_d, beta_b=beta_b, b_inf=b_inf)
+    if combined.factor is not None:  # the field fit's start: each beta times the factor across the scene
+        factor = combined.factor
+        both = SimpleNamespace(b_inf=b_inf, betas=lambda world: tuple(
+            beta * factor(world.double()).float()[:, None] for beta in (beta_d, beta_b)))
     weak_single = ", ".join(f"{c.name} {c.channel}" for c in report.checks if not c.identifiable) or "-"
     weak_multi = ", ".join(f"{c.name} {c.channel}" for c in free.checks if not c.identified) or "-"
-    sources = "; ".join(f"{n}: " + "/".join(c.source.split()[0] if c.source != NOT_IDENTIFIED else "NOT"
+    short = {NOT_IDENTIFIED: "NOT", VARYING: "field"}
+    sources = "; ".join(f"{n}: " + "/".join(short.get(c.source, c.source.split()[0])
                                              for c in combined.checks if c.name == n)
                         for n in ("beta_D", "beta_B", "B_inf"))
     clean = torch.stack([b["clean_image"] for b in datamanager.test_batches()])

@@ -2,13 +2,15 @@
 
     python benchmarks/analysis/medium_recovery.py --steps 3000 --output-dir outputs/medium-recovery
     python benchmarks/analysis/medium_recovery.py --variants default 3C plume-grid plume-homogeneous
+    python benchmarks/analysis/medium_recovery.py --variants survey-2-passes-no-open-water --seeds 0 1 2
 
 For each variant (VARIANTS: water types, open water, darkest albedo, range span, a varying medium with the VM grid
 and with the homogeneous field) it
 1. runs the point-based medium estimate the model starts from (as `uw3dgs` does before step 1; also with Sea-thru's
    residual term, `--model.medium.estimate-residual`) and its identifiability report (fields/medium_identifiability.py);
 2. trains `uw-train uw3dgs --max-num-iterations STEPS --seed 0 [method options] synthetic [scene options]` into
-   OUTPUT_DIR/VARIANT/ and evaluates it (`uw-eval`), unless that folder already holds the evaluation (a killed
+   OUTPUT_DIR/VARIANT/ (with `--seeds`, once per seed into OUTPUT_DIR/sSEED/VARIANT/, a row each) and evaluates
+   it (`uw-eval`), unless that folder already holds the evaluation (a killed
    benchmark resumes: a half-trained run continues from its last checkpoint);
 3. scores both media against the truth, per channel: B_inf against gt/medium.json, beta_D and beta_B as a field:
    the mean over the scene's seabed points (its initial points) of |beta(x) - beta_true(x)| / beta_true(x), with
@@ -48,6 +50,7 @@ from uw3dgs.engine.run_folder import NOTES_DIR
 from uw3dgs.fields.medium_estimate import estimate_from_views
 from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED
 from uw3dgs.fields.medium_identifiability import assess_medium
+from uw3dgs.fields.medium_varying import FactorField
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
 
@@ -153,9 +156,17 @@ def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str,
         truth = torch.as_tensor(truth)
         spread = value.std(0, correction=0) * truth.std(0, correction=0)
         corr = ((value - value.mean(0)) * (truth - truth.mean(0))).mean(0) / spread
-        out[name] = {"std": value.std(0).tolist(),
+        out[name] = {"std": value.std(0).tolist(), "truth_std": truth.std(0).tolist(),
                      "corr": [float(c) if s > 0 else None for c, s in zip(corr, spread, strict=True)]}
     return out
+
+
+def truth_spread(scene, scene_config: SyntheticSceneConfig) -> dict[str, list[float]]:
+    """The true field's standard deviation per beta and channel over the seabed points (per dataset unit)."""
+    world = scene.points.detach().double().cpu()
+    dataset = world * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
+    return {name: torch.as_tensor(truth).std(0).tolist()
+            for name, truth in zip(("beta_D", "beta_B"), beta_field(scene_config, dataset.numpy()), strict=True)}
 
 
 def ray_mean_errors(datamanager, scene_config: SyntheticSceneConfig, ray_betas) -> dict[str, list[float]]:
@@ -179,6 +190,28 @@ def ray_mean_errors(datamanager, scene_config: SyntheticSceneConfig, ray_betas) 
     return {name: torch.cat(e).mean(0).tolist() for name, e in errors.items()}
 
 
+def varying_row(datamanager, scene_config: SyntheticSceneConfig, beta_d: torch.Tensor, beta_b: torch.Tensor,
+                b_inf: torch.Tensor, factor: FactorField) -> dict:
+    """The field fit's start (fields/medium_varying.py: each beta [3] times `factor`) and its errors at the seabed
+    points and along the test rays (the factor's mean along each ray, as the fit reads it)."""
+    def betas(world):
+        f = factor(world.double()).float()[:, None]
+        return beta_d * f, beta_b * f
+
+    def along(camera, ranges):
+        dirs = camera.ray_directions().reshape(-1, 3).double()
+        start = camera.center.double().expand_as(dirs)
+        m = (factor.ray_weights(start, start + dirs * ranges.reshape(-1, 1).double(), 8)
+             @ factor.values.reshape(-1)).float().view(*ranges.shape, 1)
+        return beta_d * m, beta_b * m
+
+    medium = SimpleNamespace(betas=betas, b_inf=b_inf)
+    return {"medium": {"beta_d": beta_d.tolist(), "beta_b": beta_b.tolist(), "b_inf": b_inf.tolist(),
+                       "factor": factor.to_json()},
+            "errors": medium_errors(datamanager.scene, scene_config, medium),
+            "errors_ray_mean": ray_mean_errors(datamanager, scene_config, along)}
+
+
 def homogeneous_row(datamanager, scene_config: SyntheticSceneConfig, beta_d: torch.Tensor, beta_b: torch.Tensor,
                     b_inf: torch.Tensor) -> dict:
     """A homogeneous medium (each [3]) and its errors at the seabed points and along the test rays."""
@@ -197,7 +230,12 @@ def evidence_start(evidence: dict, datamanager, scene_config: SyntheticSceneConf
     and what its evidence does not identify (with why), which replaces the single-image report's verdict."""
     values = {name: torch.tensor([c["value"] for c in evidence["checks"] if c["name"] == name])
               for name in PARAMETERS}
-    start = homogeneous_row(datamanager, scene_config, *values.values())
+    if evidence.get("factor"):
+        factor = FactorField(*(torch.tensor(evidence["factor"][k], dtype=torch.float64)
+                               for k in ("center", "axes", "ticks", "values")))
+        start = varying_row(datamanager, scene_config, *values.values(), factor)
+    else:
+        start = homogeneous_row(datamanager, scene_config, *values.values())
     weak = [c for c in evidence["checks"] if c["source"] == NOT_IDENTIFIED]
     return {**start, "weak": [f"{c['name']} {c['channel']}" for c in weak],
             "reasons": [f"{c['name']} {c['channel']}: {c['reason']}" for c in weak],
@@ -314,7 +352,7 @@ def re_estimate(name: str, output_dir: Path, scene_config: SyntheticSceneConfig,
 
 
 def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, cache_dir: Path | None,
-                train_flags: list[str], estimate_again: bool = False) -> dict:
+                train_flags: list[str], estimate_again: bool = False, seed: int = 0) -> dict:
     path = output_dir / name / "row.json"
     options, method_flags = VARIANTS[name]
     scene_config = SyntheticSceneConfig(**{**options, **scene_overrides})
@@ -328,6 +366,12 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
             model.eval()
             row["recoverable"] = recoverable_psnr(model, datamanager, row["recoverable_range"])
             path.write_text(json.dumps(row, indent=1))
+        spread = row["trained"].get("spread")
+        if spread and "truth_std" not in spread["beta_D"]:  # a row saved before the true field's spread was kept
+            data = SyntheticDataManagerConfig(scene=scene_config, **({"cache_dir": cache_dir} if cache_dir else {}))
+            for name, std in truth_spread(data.setup(data=None).scene, scene_config).items():
+                spread[name]["truth_std"] = std
+            path.write_text(json.dumps(row, indent=1))
         return row
     estimate_path = output_dir / name / "estimate.json"
     if estimate_path.is_file():
@@ -336,7 +380,7 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
         row = estimate_row(scene_config, cache_dir)
         estimate_path.parent.mkdir(parents=True, exist_ok=True)
         estimate_path.write_text(json.dumps(row, indent=1))
-    argv = ["uw3dgs", "--max-num-iterations", str(steps), "--seed", "0", "--output-dir", str(output_dir / name),
+    argv = ["uw3dgs", "--max-num-iterations", str(steps), "--seed", str(seed), "--output-dir", str(output_dir / name),
             "--timestamp", "run", "--no-progress", *method_flags, *train_flags,
             "synthetic", *scene_flags({**options, **scene_overrides}),
             *(["--datamanager.cache-dir", str(cache_dir)] if cache_dir else [])]
@@ -389,10 +433,10 @@ def table(rows: list[dict]) -> list[str]:
         errs = [" ; ".join(percents(part["errors"][p]) for p in PARAMETERS)
                 for part in (start_of(row), row["estimate_residual"], row["trained"])]
         weak, met = verdict(row)
-        lines.append(f"| {row['name']} | {errs[0]} | {errs[1]} | {errs[2]} | {row['input_psnr']:.2f} | "
-                     f"{row['uri_psnr']:.2f} | {weak} | {met} |")
+        lines.append(f"| {row.get('label', row['name'])} | {errs[0]} | {errs[1]} | {errs[2]} | "
+                     f"{row['input_psnr']:.2f} | {row['uri_psnr']:.2f} | {weak} | {met} |")
     lines.append("")
-    lines += [f"- {row['name']}: {reason}" for row in rows for reason in start_of(row)["reasons"]]
+    lines += [f"- {row.get('label', row['name'])}: {reason}" for row in rows for reason in start_of(row)["reasons"]]
     return lines
 
 
@@ -409,26 +453,29 @@ def field_table(rows: list[dict]) -> list[str]:
             where = ["errors", "errors_at_centres", "errors_ray_mean"] if label == "trained" else \
                 ["errors", None, "errors_ray_mean"]
             cells = [" / ".join(percents(part[w][p]) if w else "-" for w in where) for p in PARAMETERS[:2]]
-            lines.append(f"| {row['name']} | {label} | {cells[0]} | {cells[1]} |")
+            lines.append(f"| {row.get('label', row['name'])} | {label} | {cells[0]} | {cells[1]} |")
     return lines
 
 
 def spread_table(rows: list[dict]) -> list[str]:
     """The varying-medium rows: how the trained field varies at the seabed points (standard deviation per dataset
-    unit, and correlation with the true field; '-' for a flat field), and the UWI's PSNR against the hazy test
+    unit, correlation with the true field, '-' for a flat field, and amplitude: its standard deviation over the
+    true field's), and the UWI's PSNR against the hazy test
     images (how well the images are fitted); rows saved before the spread was stored are left out."""
     rows = [row for row in rows if VARIANTS[row["name"]][0].get("medium_profile", "homogeneous") != "homogeneous"
             and "spread" in row["trained"]]
     if not rows:
         return []
-    lines = ["| variant | beta_D std (R/G/B) | beta_D corr with truth | beta_B std | beta_B corr | UWI PSNR |",
-             "|---|---|---|---|---|---:|"]
+    lines = ["| variant | beta_D std (R/G/B) | beta_D corr with truth ; amplitude | beta_B std | beta_B corr ; "
+             "amplitude | UWI PSNR |", "|---|---|---|---|---|---:|"]
     for row in rows:
         spread = row["trained"]["spread"]
         cells = [cell for p in PARAMETERS[:2] for cell in (
             "/".join(f"{s:.3g}" for s in spread[p]["std"]),
-            "/".join("-" if c is None else f"{c:.2f}" for c in spread[p]["corr"]))]
-        lines.append(f"| {row['name']} | {' | '.join(cells)} | {row['eval']['psnr']:.2f} |")
+            "/".join("-" if c is None else f"{c:.2f}" for c in spread[p]["corr"]) + " ; " + "/".join(
+                f"{s / t:.2f}" if t > 0 else "-" for s, t in zip(spread[p]["std"], spread[p]["truth_std"],
+                                                                 strict=True)))]
+        lines.append(f"| {row.get('label', row['name'])} | {' | '.join(cells)} | {row['eval']['psnr']:.2f} |")
     return lines
 
 
@@ -441,7 +488,7 @@ def recoverable_table(rows: list[dict]) -> list[str]:
              "|---|---|---|---:|---:|---:|---:|"]
     for row in rows:
         rec = row["recoverable"]
-        lines.append(f"| {row['name']} | {'/'.join(f'{z:.1f}' for z in row['recoverable_range'])} | "
+        lines.append(f"| {row.get('label', row['name'])} | {'/'.join(f'{z:.1f}' for z in row['recoverable_range'])} | "
                      f"{percents(row['unrecoverable_share'])} | {100 * rec['beyond']:.0f} | "
                      f"{rec['input_psnr']:.2f} / {rec['uri_psnr']:.2f} | {rec['uri_psnr'] - rec['input_psnr']:+.1f} | "
                      f"{row['uri_psnr'] - row['input_psnr']:+.1f} |")
@@ -450,7 +497,10 @@ def recoverable_table(rows: list[dict]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--steps", type=int, default=3000, help="training steps of every run (seed 0)")
+    parser.add_argument("--steps", type=int, default=3000, help="training steps of every run")
+    parser.add_argument("--seeds", type=int, nargs="+", default=None,
+                        help="uw-train's --seed: every variant once per seed, in OUTPUT_DIR/sSEED/VARIANT, a row each "
+                             "(default: seed 0 in OUTPUT_DIR/VARIANT)")
     parser.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
     parser.add_argument("--output-dir", type=Path, default=Path("outputs/medium-recovery"))
     parser.add_argument("--scene", action="append", default=[], metavar="KEY=VALUE",
@@ -468,8 +518,12 @@ def main(argv: list[str] | None = None) -> None:
     for item in args.scene:
         key, value = item.split("=", 1)
         overrides[key] = int(value) if fields[key] in (int, "int") else float(value)
-    rows = [run_variant(name, args.steps, args.output_dir, overrides, args.cache_dir, shlex.split(args.train_flags),
-                        args.estimate_again) for name in args.variants]
+    rows = []
+    for seed in args.seeds or [0]:
+        for name in args.variants:
+            row = run_variant(name, args.steps, args.output_dir / f"s{seed}" if args.seeds else args.output_dir,
+                              overrides, args.cache_dir, shlex.split(args.train_flags), args.estimate_again, seed)
+            rows.append({**row, "label": f"{name} (seed {seed})"} if args.seeds else row)
     print("\n".join(table(rows) + [""] + recoverable_table(rows) + [""] + field_table(rows) + [""]
                     + spread_table(rows)))
 

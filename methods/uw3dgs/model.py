@@ -21,7 +21,7 @@ from uw3dgs.data.scene import SceneData
 from uw3dgs.engine.callbacks import StepSchedule, TrainingCallback
 from uw3dgs.engine.config import TrainConfig
 from uw3dgs.engine.optimizers import Optimizers, ParamGroupConfig
-from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGridConfig
+from uw3dgs.fields.medium import MediumField, MediumFieldConfig, MediumGrid, MediumGridConfig
 from uw3dgs.fields.medium_estimate import MediumEstimate, dehazed_colors, estimate_from_views, observe_points
 from uw3dgs.fields.medium_evidence import EvidenceReport, combine_by_evidence
 from uw3dgs.fields.medium_identifiability import IdentifiabilityReport, assess_medium
@@ -154,6 +154,14 @@ class UW3DGSModel(GaussianSplattingModel):
         # L_beta then keeps the field near what the data says, not near a constant that may be far off
         # (docs/methods/uw3dgs.md: pulled toward beta_prior, red beta_D drifts away from the truth)
         self.medium.set_prior(estimate.beta_d, estimate.beta_b)
+        factor = None if self.medium_evidence is None else self.medium_evidence.factor
+        if factor is not None:  # the multi-view field fit found and pinned a medium that varies in space
+            self.medium.set_factor(lambda x: factor(x.double()).float(), scene.points.float())
+            info("medium evidence: the betas start varying across the scene as the field fit found them")
+            if getattr(mc, "factor_penalty", "roughness") == "norm":
+                info("medium evidence: the factor penalty 'norm' pulls a varying field toward flat "
+                     "(docs/medium-varying.md): add --model.medium.flat-start constant-factors "
+                     "--model.medium.factor-penalty roughness")
         with torch.no_grad():
             self.gaussians.sh0.copy_(rgb_to_sh(estimate.clean_colors.clamp(0, 1))[:, None, :])
 
@@ -189,8 +197,10 @@ class UW3DGSModel(GaussianSplattingModel):
             info(f"medium evidence: {line}")
         medium = self.medium_evidence.medium
         observed = observe_points(scene.points.float(), cameras, images)
+        factor = self.medium_evidence.factor
         colors = dehazed_colors(scene.points.float(), scene.point_colors, cameras, self.dataset_scale, medium,
-                                observed, scene.cameras if mc.dehaze_unseen_with_all_poses else None)
+                                observed, scene.cameras if mc.dehaze_unseen_with_all_poses else None,
+                                None if factor is None else factor(scene.points.double()))
         return dataclasses.replace(estimate, beta_d=medium[0], beta_b=medium[1], b_inf=medium[2],
                                    clean_colors=colors)
 
@@ -209,8 +219,13 @@ class UW3DGSModel(GaussianSplattingModel):
         return notes
 
     def checkpoint_defaults(self) -> dict[str, Tensor]:
-        """A checkpoint from before the water verdict has no 'water_free': it rendered with its medium."""
-        return {"water_free": torch.tensor(False)}
+        """A checkpoint from before the water verdict has no 'water_free': it rendered with its medium; one from
+        before the varying start has a grid medium with no 'prior_factor': its L_beta targets were flat."""
+        defaults = {"water_free": torch.tensor(False)}
+        if isinstance(self.medium, MediumGrid):
+            defaults["medium.prior_factor"] = torch.ones_like(self.medium.prior_factor)
+            defaults["medium.prior_varies"] = torch.tensor(False)
+        return defaults
 
     @property
     def renders_medium(self) -> bool:
