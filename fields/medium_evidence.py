@@ -12,8 +12,10 @@ Per channel: B_inf off open water is held (in the multi-view fit too); else the 
 identified by range diversity, else the single-image one (identified by the far end of the ranges, or not
 identified). The multi-view fit is then made with B_inf held where it did not come from it, so the betas of a
 channel are fitted with the B_inf used. Each beta is taken from the estimate that identifies it, the one with the
-smaller spread where both do; where neither does, the single-image value is kept (today's start) and reported as
-not identified. Betas fitted with a B_inf that nothing identifies are not identified by range diversity either.
+smaller spread where both do; where neither does, it is reported as not identified and starts from the value with
+the smaller spread (the multi-view bootstrap's against the single-image report's spread or assumption; the
+single-image value where the medium varies or the channel's B_inf is not identified). Betas fitted with a B_inf
+that nothing identifies are not identified by range diversity either.
 Where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a homogeneous value
 is an average), the betas come from the multi-view field fit (fields/medium_varying.py) where its bootstrap pins
 every beta and B_inf, reported as identified by range diversity, varying in space (B_inf fitted with the field,
@@ -156,8 +158,13 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
                 check = EvidenceCheck(name, CHANNELS[c], multi.value, RANGE_DIVERSITY, single_value, multi.value)
             elif ok:
                 check = EvidenceCheck(name, CHANNELS[c], single_value, DARK_PIXELS, single_value, multi.value)
-            else:
-                check = EvidenceCheck(name, CHANNELS[c], single_value, NOT_IDENTIFIED, single_value, multi.value,
-                                      f"multi-view: {multi.reason}; single image: {why}")
+            else:  # neither pins it: start from the one with the smaller spread (flagged either way)
+                closer = not varies and b_source[c] != NOT_IDENTIFIED and math.isfinite(multi.spread) \
+                    and multi.spread < uncertainty
+                start = f"; started from the multi-view value (spread +-{multi.spread:.0%} against the single " \
+                        f"image's +-{uncertainty:.0%})" if closer else ""
+                check = EvidenceCheck(name, CHANNELS[c], multi.value if closer else single_value, NOT_IDENTIFIED,
+                                      single_value, multi.value, f"multi-view: {multi.reason}; single image: {why}"
+                                      f"{start}")
             result.checks.append(check)
     return result

@@ -335,3 +335,23 @@ def test_the_multiview_start_sets_the_combined_medium_and_pulls_toward_it(make_c
     sh0 = model.gaussians.sh0[:, 0]
     assert torch.isfinite(sh0).all() and not torch.allclose(sh0, rgb_to_sh(scene.point_colors.float()))
     assert "medium_evidence" in model.run_notes()
+
+
+@pytest.mark.parametrize(("multi_spread", "expected"), [(0.2, 0.6), (0.8, 0.2)])
+def test_a_parameter_neither_estimate_pins_starts_from_the_one_with_the_smaller_spread(multi_spread, expected):
+    """Green beta_B: the single-image report flags it (+-50%), the multi-view bootstrap too (+-20% or +-80%): it is
+    not identified either way, and starts from the value with the smaller spread."""
+    single = _estimate((0.1, 0.2, 0.3))
+    everything = {name: [True] * 3 for name in ("beta_D", "beta_B", "B_inf")}
+    report = _report({**everything, "beta_B": [True, False, True]})
+    report.checks[4] = dataclasses.replace(report.checks[4], spread=0.5)
+
+    def fit(b_inf):
+        result = _multiview((0.5, 0.6, 0.7), {**everything, "beta_B": [True, False, True]})
+        result.checks[4] = dataclasses.replace(result.checks[4], spread=multi_spread)
+        return result
+
+    check = next(c for c in combine_by_evidence(single, report, None, fit).checks
+                 if c.name == "beta_B" and c.channel == "G")
+    assert check.source == NOT_IDENTIFIED and check.value == pytest.approx(expected)
+    assert ("started from the multi-view value" in check.reason) == (multi_spread < 0.5)
