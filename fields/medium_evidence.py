@@ -14,7 +14,8 @@ identified). The multi-view fit is then made with B_inf held where it did not co
 channel are fitted with the B_inf used. Each beta is taken from the estimate that identifies it, the one with the
 smaller spread where both do; where neither does, it is reported as not identified and starts from the value with
 the smaller spread (the multi-view bootstrap's against the single-image report's spread or assumption; the
-single-image value where the medium varies or the channel's B_inf is not identified). Betas fitted with a B_inf
+single-image value where the medium varies, the channel's B_inf is not identified, or, for beta_D, the multi-view
+beta_B is not). Betas fitted with a B_inf
 that nothing identifies are not identified by range diversity either.
 Where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a homogeneous value
 is an average), the betas come from the multi-view field fit (fields/medium_varying.py) where its bootstrap pins
@@ -159,7 +160,9 @@ def combine_by_evidence(single: MediumEstimate, report: IdentifiabilityReport | 
             elif ok:
                 check = EvidenceCheck(name, CHANNELS[c], single_value, DARK_PIXELS, single_value, multi.value)
             else:  # neither pins it: start from the one with the smaller spread (flagged either way)
-                closer = not varies and b_source[c] != NOT_IDENTIFIED and math.isfinite(multi.spread) \
+                # a beta_D fitted under a beta_B the fit does not pin has a spread that says nothing of it
+                pinned = name != "beta_D" or multiview.check("beta_B", c).identified
+                closer = not varies and pinned and b_source[c] != NOT_IDENTIFIED and math.isfinite(multi.spread) \
                     and multi.spread < uncertainty
                 start = f"; started from the multi-view value (spread +-{multi.spread:.0%} against the single " \
                         f"image's +-{uncertainty:.0%})" if closer else ""
