@@ -85,7 +85,7 @@ class MediumFieldConfig(InstantiateConfig):
     (colour in [0, 1]; 0.02 is about 5 grey levels of an 8-bit image): water is one colour, seabed has texture."""
     open_water_min_uniform: float = 0.5
     """Least share of the empty cells that must look like open water (`open_water_max_std`) for B_inf to be read
-    off them: a hole in the points over textured seabed is not water (docs/medium-recovery.md, "B_inf without open
+    off them: a hole in the points over textured seabed is not water (docs/medium-report.md, "B_inf without open
     water"). Below it B_inf is fitted from the far, veiled end of the ranges and the identifiability report says
     why. 0 takes every empty cell as water."""
     far_end_quantile: float = 0.9
@@ -162,7 +162,7 @@ class MediumGridConfig(MediumFieldConfig):
     factor_penalty_weight: float = 0.001
     """Weight of the factor penalty inside L_beta (>= 0; L_beta itself is then scaled by beta_loss_weight). 0.001 is
     the paper's weight on the factor norm, also used for the roughness; 0 turns the penalty off
-    (docs/medium-recovery.md, "The roughness weight")."""
+    (docs/medium-varying.md, "The roughness weight")."""
     ray_samples: int = 1
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1

@@ -456,7 +456,7 @@ def veiling_light_from_far_end(point: Tensor, color: Tensor, z: Tensor, quantile
     lower still) and the median colour of the observations beyond the `quantile` of the ranges (the typical surface,
     brighter than the water, approaches it from above). B_inf is the middle of the two; half their distance bounds
     its error where the bracket holds (the identifiability report checks it, and that the far end is veiled;
-    docs/medium-recovery.md, "B_inf without open water"). Returns (B_inf, below, above)."""
+    docs/medium-report.md, "B_inf without open water"). Returns (B_inf, below, above)."""
     below = fit_medium(point, color, z, None, bins, share, residual=residual, steps=steps,
                        max_observations=max_observations).b_inf
     above = far_end_color(z, color, quantile)[1]

@@ -34,7 +34,7 @@ end of the ranges (`veiling_light_from_far_end`) or fitted, and two more checks 
 
 The betas of a channel whose B_inf is not identifiable are not either: they are fitted with it held.
 
-Three limits no refit shows (docs/medium-recovery.md, "The last three misses, and 9C"):
+Three limits no refit shows (docs/medium-report.md, "The last three misses, and 9C"):
 
 - resolution: the images round every colour to a grey level (`grey_level`), so a B_inf of a few grey levels is
   not known to the tolerance (it does not flag the betas: its error is under what their fits resolve);
@@ -123,7 +123,7 @@ class IdentifiabilityConfig(CheckedConfig):
     """A relative change of the surfaces' colours over the span of ranges that is not the water's (the texture
     blurs with distance, the relief hides and shows shading): beta_D read over a span of tau optical depths moves
     by about color_drift / tau, so it is flagged where that exceeds the tolerance (under 0.4 optical depths at 6%
-    and 15%). Calibrated on the synthetic scene's homogeneous variants (docs/medium-recovery.md, "The last three
+    and 15%). Calibrated on the synthetic scene's homogeneous variants (docs/medium-report.md, "The last three
     misses, and 9C")."""
     dark_albedo: float = 0.03
     """The albedo the darkest surfaces in view may have: a few % for dark rock, sponges and shadowed crevices.
