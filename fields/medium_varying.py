@@ -270,8 +270,8 @@ def varying_estimate(point: Tensor, color: Tensor, z: Tensor, starts: Tensor, en
     """The varying fit of observations (ids `point` [M] 0..P-1, colours [M, 3], ranges z [M], rays from starts
     [M, 3] to ends [M, 3] in world units, weights [M]) from the homogeneous fit `start`, over a field spanning
     `positions` [P, 3], with `config.field_resamples` bootstrap refits over points, each started from the whole
-    fit (a refit from the homogeneous start costs about ten times more): their spread is the noise around the whole
-    fit's valley of the cost, not a search for another."""
+    fit (from the homogeneous start each would take as many iterations as the whole fit): their spread is the
+    noise around the whole fit's valley of the cost, not a search for another."""
     config = config or MultiviewConfig()
     factor = FactorField.around(positions, config.field_nodes)
     phi = factor.ray_weights(starts, ends, config.field_samples)
