@@ -15,8 +15,8 @@ channel are fitted with the B_inf used. Each beta is taken from the estimate tha
 smaller spread where both do; where neither does, it is reported as not identified and starts from the value with
 the smaller spread (the multi-view bootstrap's against the single-image report's spread or assumption; the
 single-image value where the medium varies, the channel's B_inf is not identified, or, for beta_D, the multi-view
-beta_B is not). Betas fitted with a B_inf
-that nothing identifies are not identified by range diversity either.
+beta_B is not). Betas fitted with a B_inf that nothing identifies are not identified by range diversity either.
+
 Where either estimate finds the halves of the scene disagreeing (a medium that varies in space: a homogeneous value
 is an average), the betas come from the multi-view field fit (fields/medium_varying.py) where its bootstrap pins
 every beta and B_inf, reported as identified by range diversity, varying in space (B_inf fitted with the field,

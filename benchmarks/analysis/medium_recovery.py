@@ -10,8 +10,8 @@ and with the homogeneous field) it
    residual term, `--model.medium.estimate-residual`) and its identifiability report (fields/medium_identifiability.py);
 2. trains `uw-train uw3dgs --max-num-iterations STEPS --seed 0 [method options] synthetic [scene options]` into
    OUTPUT_DIR/VARIANT/ (with `--seeds`, once per seed into OUTPUT_DIR/sSEED/VARIANT/, a row each) and evaluates
-   it (`uw-eval`), unless that folder already holds the evaluation (a killed
-   benchmark resumes: a half-trained run continues from its last checkpoint);
+   it (`uw-eval`), unless that folder already holds the evaluation (a killed benchmark resumes: a half-trained run
+   continues from its last checkpoint);
 3. scores both media against the truth, per channel: B_inf against gt/medium.json, beta_D and beta_B as a field:
    the mean over the scene's seabed points (its initial points) of |beta(x) - beta_true(x)| / beta_true(x), with
    beta_true = `beta_field` (datamanagers/synthetic/scene.py), the reference medium times the profile (1 without
@@ -132,8 +132,7 @@ def medium_errors(scene, scene_config: SyntheticSceneConfig, medium, world: torc
     """Per channel relative errors of `medium` (a MediumField, or an estimate: beta_d, beta_b [3], b_inf [3]):
     beta_D, beta_B as fields over world points [N, 3] (default: the seabed points), B_inf against the reference."""
     world = (scene.points if world is None else world).detach().float().cpu()
-    dataset = world.double() * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
-    true_d, true_b = (torch.as_tensor(t) for t in beta_field(scene_config, dataset.numpy()))
+    true_d, true_b = true_betas(scene, scene_config, world)
     with torch.no_grad():
         learned_d, learned_b = medium.betas(world) if hasattr(medium, "betas") else (medium.beta_d, medium.beta_b)
     truth_inf = torch.tensor(scene.gt.medium["B_inf"], dtype=torch.float64)
@@ -147,13 +146,10 @@ def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str,
     seabed points (per dataset unit) and its Pearson correlation with the true field there (None where either is
     flat)."""
     world = scene.points.detach().float().cpu()
-    dataset = world.double() * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
     with torch.no_grad():
         learned = [b.double() for b in medium.betas(world)]
     out = {}
-    for name, value, truth in zip(("beta_D", "beta_B"), learned, beta_field(scene_config, dataset.numpy()),
-                                  strict=True):
-        truth = torch.as_tensor(truth)
+    for name, value, truth in zip(("beta_D", "beta_B"), learned, true_betas(scene, scene_config, world), strict=True):
         spread = value.std(0, correction=0) * truth.std(0, correction=0)
         corr = ((value - value.mean(0)) * (truth - truth.mean(0))).mean(0) / spread
         out[name] = {"std": value.std(0).tolist(), "truth_std": truth.std(0).tolist(),
@@ -161,12 +157,17 @@ def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str,
     return out
 
 
+def true_betas(scene, scene_config: SyntheticSceneConfig, world: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The true beta_D, beta_B [N, 3] (float64, per dataset unit) at world points [N, 3] of the scene."""
+    dataset = world.double() * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
+    true_d, true_b = beta_field(scene_config, dataset.numpy())
+    return torch.as_tensor(true_d), torch.as_tensor(true_b)
+
+
 def truth_spread(scene, scene_config: SyntheticSceneConfig) -> dict[str, list[float]]:
     """The true field's standard deviation per beta and channel over the seabed points (per dataset unit)."""
-    world = scene.points.detach().double().cpu()
-    dataset = world * scene.dataset_scale + torch.tensor(scene.dataset_center, dtype=torch.float64)
-    return {name: torch.as_tensor(truth).std(0).tolist()
-            for name, truth in zip(("beta_D", "beta_B"), beta_field(scene_config, dataset.numpy()), strict=True)}
+    truth = true_betas(scene, scene_config, scene.points.detach().cpu())
+    return {name: value.std(0).tolist() for name, value in zip(("beta_D", "beta_B"), truth, strict=True)}
 
 
 def ray_mean_errors(datamanager, scene_config: SyntheticSceneConfig, ray_betas) -> dict[str, list[float]]:
@@ -369,8 +370,8 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
         spread = row["trained"].get("spread")
         if spread and "truth_std" not in spread["beta_D"]:  # a row saved before the true field's spread was kept
             data = SyntheticDataManagerConfig(scene=scene_config, **({"cache_dir": cache_dir} if cache_dir else {}))
-            for name, std in truth_spread(data.setup(data=None).scene, scene_config).items():
-                spread[name]["truth_std"] = std
+            for beta, std in truth_spread(data.setup(data=None).scene, scene_config).items():
+                spread[beta]["truth_std"] = std
             path.write_text(json.dumps(row, indent=1))
         return row
     estimate_path = output_dir / name / "estimate.json"
@@ -425,6 +426,11 @@ def verdict(row: dict) -> tuple[str, str]:
     return weak_text, f"met{rest}" if not misses else f"not met{rest}: " + ", ".join(misses)
 
 
+def row_label(row: dict) -> str:
+    """The row's name in the tables: the variant, with its seed under --seeds."""
+    return row.get("label", row["name"])
+
+
 def table(rows: list[dict]) -> list[str]:
     lines = ["| variant | estimate err % beta_D / beta_B / B_inf (R/G/B) | with residual term | "
              "trained err % beta_D / beta_B / B_inf (R/G/B) | input PSNR | URI PSNR | not identifiable | "
@@ -433,10 +439,10 @@ def table(rows: list[dict]) -> list[str]:
         errs = [" ; ".join(percents(part["errors"][p]) for p in PARAMETERS)
                 for part in (start_of(row), row["estimate_residual"], row["trained"])]
         weak, met = verdict(row)
-        lines.append(f"| {row.get('label', row['name'])} | {errs[0]} | {errs[1]} | {errs[2]} | "
+        lines.append(f"| {row_label(row)} | {errs[0]} | {errs[1]} | {errs[2]} | "
                      f"{row['input_psnr']:.2f} | {row['uri_psnr']:.2f} | {weak} | {met} |")
     lines.append("")
-    lines += [f"- {row.get('label', row['name'])}: {reason}" for row in rows for reason in start_of(row)["reasons"]]
+    lines += [f"- {row_label(row)}: {reason}" for row in rows for reason in start_of(row)["reasons"]]
     return lines
 
 
@@ -453,15 +459,15 @@ def field_table(rows: list[dict]) -> list[str]:
             where = ["errors", "errors_at_centres", "errors_ray_mean"] if label == "trained" else \
                 ["errors", None, "errors_ray_mean"]
             cells = [" / ".join(percents(part[w][p]) if w else "-" for w in where) for p in PARAMETERS[:2]]
-            lines.append(f"| {row.get('label', row['name'])} | {label} | {cells[0]} | {cells[1]} |")
+            lines.append(f"| {row_label(row)} | {label} | {cells[0]} | {cells[1]} |")
     return lines
 
 
 def spread_table(rows: list[dict]) -> list[str]:
     """The varying-medium rows: how the trained field varies at the seabed points (standard deviation per dataset
     unit, correlation with the true field, '-' for a flat field, and amplitude: its standard deviation over the
-    true field's), and the UWI's PSNR against the hazy test
-    images (how well the images are fitted); rows saved before the spread was stored are left out."""
+    true field's), and the UWI's PSNR against the hazy test images (how well the images are fitted); rows saved
+    before the spread was stored are left out."""
     rows = [row for row in rows if VARIANTS[row["name"]][0].get("medium_profile", "homogeneous") != "homogeneous"
             and "spread" in row["trained"]]
     if not rows:
@@ -475,7 +481,7 @@ def spread_table(rows: list[dict]) -> list[str]:
             "/".join("-" if c is None else f"{c:.2f}" for c in spread[p]["corr"]) + " ; " + "/".join(
                 f"{s / t:.2f}" if t > 0 else "-" for s, t in zip(spread[p]["std"], spread[p]["truth_std"],
                                                                  strict=True)))]
-        lines.append(f"| {row.get('label', row['name'])} | {' | '.join(cells)} | {row['eval']['psnr']:.2f} |")
+        lines.append(f"| {row_label(row)} | {' | '.join(cells)} | {row['eval']['psnr']:.2f} |")
     return lines
 
 
@@ -488,7 +494,7 @@ def recoverable_table(rows: list[dict]) -> list[str]:
              "|---|---|---|---:|---:|---:|---:|"]
     for row in rows:
         rec = row["recoverable"]
-        lines.append(f"| {row.get('label', row['name'])} | {'/'.join(f'{z:.1f}' for z in row['recoverable_range'])} | "
+        lines.append(f"| {row_label(row)} | {'/'.join(f'{z:.1f}' for z in row['recoverable_range'])} | "
                      f"{percents(row['unrecoverable_share'])} | {100 * rec['beyond']:.0f} | "
                      f"{rec['input_psnr']:.2f} / {rec['uri_psnr']:.2f} | {rec['uri_psnr'] - rec['input_psnr']:+.1f} | "
                      f"{row['uri_psnr'] - row['input_psnr']:+.1f} |")

@@ -158,7 +158,7 @@ class UW3DGSModel(GaussianSplattingModel):
         if factor is not None:  # the multi-view field fit found and pinned a medium that varies in space
             self.medium.set_factor(lambda x: factor(x.double()).float(), scene.points.float())
             info("medium evidence: the betas start varying across the scene as the field fit found them")
-            if getattr(mc, "factor_penalty", "roughness") == "norm":
+            if isinstance(self.medium, MediumGrid) and mc.factor_penalty == "norm":
                 info("medium evidence: the factor penalty 'norm' pulls a varying field toward flat "
                      "(docs/medium-varying.md): add --model.medium.flat-start constant-factors "
                      "--model.medium.factor-penalty roughness")
