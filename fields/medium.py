@@ -175,6 +175,7 @@ class MediumGridConfig(MediumFieldConfig):
     """Such a start is written into the VM factors by this many Adam steps (`distill_lr`) fitting log beta to the
     target at random points of the box and at the initial points."""
     distill_lr: float = 0.02
+    """Adam's learning rate for `distill_steps`."""
 
     def check_options(self) -> None:
         super().check_options()

@@ -10,6 +10,7 @@ import torch
 from uw3dgs.fields.medium import MediumGridConfig
 from uw3dgs.fields.medium_multiview import MultiviewConfig, fit_multiview
 from uw3dgs.fields.medium_varying import FactorField, _varying_model, varying_estimate
+from uw3dgs.options import OptionError
 
 BETA_D, BETA_B, B_INF = (0.30, 0.12, 0.08), (0.24, 0.20, 0.16), (0.20, 0.30, 0.40)
 
@@ -148,3 +149,8 @@ def test_a_grid_started_from_a_factor_gets_image_gradients_on_its_factors(start)
     (beta_d.sum() + beta_b.sum()).backward()  # stands in for any image loss through the betas
     for field in (medium.beta_d, medium.beta_b):
         assert float(field.planes.grad.abs().sum()) > 0 and float(field.lines.grad.abs().sum()) > 0
+
+
+def test_a_field_of_one_node_is_refused_with_the_option_named():
+    with pytest.raises(OptionError, match="field_nodes"):
+        MultiviewConfig(field_nodes=1)
