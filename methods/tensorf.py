@@ -372,26 +372,26 @@ method = MethodSpec(
 
 CPU_STEPS = 3000
 """The CPU recipe's run length (`cpu_recipe`): 3,000 steps of 1,024 rays, about six passes over IUI3-RedSea's
-training pixels at downscale 8."""
+training pixels at downscale 8. The schedule below is written for it and scales with a method's own length."""
 
 
-def cpu_recipe(model: TensoRFModelConfig) -> TensoRFModelConfig:
+def cpu_recipe(model: TensoRFModelConfig, steps: int = CPU_STEPS) -> TensoRFModelConfig:
     """TensoRF's recipe cut to fit a CPU hour (docs/methods/tensorf.md, "On a CPU"): spherical-harmonic shading
     instead of the MLP (TensoRF's own `SH` mode), a 64^3 -> 200^3 grid at twice the voxel size a step and at most 128
-    samples a ray, 1,024 rays a step; growth and alpha masks at the same fractions of the run as the official
-    schedule's (2,000 ... 5,500 and 2,500 of 25,000)."""
+    samples a ray, 1,024 rays a step; growth and alpha masks at the same fractions of a `steps`-step run as the
+    official schedule's (2,000 ... 5,500 and 2,500 of 25,000)."""
+    scale = steps / CPU_STEPS
     return replace(model, radiance=replace(model.radiance, shading="sh"), batch_size=1024, voxels_init=64 ** 3,
-                   voxels_final=200 ** 3, upsample_steps=(240, 360, 480, 660), alpha_mask_steps=(300,),
-                   step_ratio=2.0, max_samples=128)
+                   voxels_final=200 ** 3, upsample_steps=tuple(round(s * scale) for s in (240, 360, 480, 660)),
+                   alpha_mask_steps=(round(300 * scale),), step_ratio=2.0, max_samples=128)
 
 
-
-def cpu_method(parent: MethodSpec, description: str) -> MethodSpec:
-    """`parent` (a TensoRF-field method) on the CPU recipe, registered as `<parent>-cpu`."""
+def cpu_method(parent: MethodSpec, description: str, steps: int = CPU_STEPS) -> MethodSpec:
+    """`parent` (a TensoRF-field method) on the CPU recipe of `steps` steps, registered as `<parent>-cpu`."""
     name = f"{parent.name}-cpu"
     return MethodSpec(name=name, description=description,
-                      config=replace(parent.config, method_name=name, max_num_iterations=CPU_STEPS,
-                                     model=cpu_recipe(parent.config.model)))
+                      config=replace(parent.config, method_name=name, max_num_iterations=steps,
+                                     model=cpu_recipe(parent.config.model, steps)))
 
 
 cpu = cpu_method(method, "tensorf cut to fit a CPU hour: spherical-harmonic shading (no MLP), a 64^3 -> 200^3 grid, "
