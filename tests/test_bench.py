@@ -311,3 +311,24 @@ def test_options_removed_since_a_run_was_saved_are_no_conflict():
     assert config_differences(saved, {"model": {"medium": {"_type": "G", "resolution": 64}}}) == []
     assert config_differences({"model": {**saved["model"], "typo": 1}}, {"model": saved["model"]}) == \
         ["model.typo (1 in the run, '<absent>' in the grid)"]
+
+
+def test_options_added_since_a_run_was_saved_take_their_defaults_and_are_no_conflict():
+    """A run written before an option existed loads with its default (what `--resume` would train with): the same
+    settings as a grid that leaves it at the default, and a grid that sets it otherwise still conflicts."""
+    import copy
+
+    from uw3dgs.bench.cell import as_loaded
+    from uw3dgs.cli.train import parse_config
+    from uw3dgs.config import config_to_dict
+
+    grid_side = config_to_dict(parse_config(["uw3dgs", "--max-num-iterations", "20"]))
+    old_run = copy.deepcopy(grid_side)
+    del old_run["model"]["medium"]["multiview"]["field_nodes"]  # saved before the field fit existed
+    assert config_differences(old_run, grid_side) != []  # as written, it is missing
+    assert config_differences(as_loaded(old_run), grid_side) == []
+    other = config_to_dict(parse_config(["uw3dgs", "--max-num-iterations", "20",
+                                         "--model.medium.multiview.field-nodes", "5"]))
+    assert config_differences(as_loaded(old_run), other) == \
+        ["model.medium.multiview.field_nodes (7 in the run, 5 in the grid)"]
+    assert as_loaded({"_type": "no.such.Config"}) == {"_type": "no.such.Config"}  # compared as written

@@ -77,6 +77,18 @@ def expected_config(cell: Cell) -> dict[str, Any]:
     return config_to_dict(config)
 
 
+def as_loaded(saved: dict[str, Any]) -> dict[str, Any]:
+    """A run's saved config as `uw-train --load-config` reads it: options added since the run was written take
+    their defaults (which keep the behaviour the run had), options removed since are dropped. A config that does not
+    load is compared as written (the differences then name what is wrong)."""
+    from uw3dgs.config import config_from_dict, config_to_dict
+
+    try:
+        return config_to_dict(config_from_dict(saved))
+    except (ValueError, TypeError, ImportError):
+        return saved
+
+
 def config_differences(saved: dict[str, Any], expected: dict[str, Any]) -> list[str]:
     """The options whose values differ, as 'key (saved in the run, in the grid)'; paths compared resolved, options
     removed since the run was saved (`uw3dgs.config.REMOVED_OPTIONS`) skipped."""
@@ -115,7 +127,7 @@ def cell_state(cell: Cell, check_config: bool = True) -> tuple[State, str]:
     if not isinstance(saved, dict):
         return State.CONFLICT, f"{config_file} is not a uw3dgs config (not a mapping); {KEEP_ADVICE}"
     if check_config:
-        differences = config_differences(saved, expected_config(cell))
+        differences = config_differences(as_loaded(saved), expected_config(cell))
         if differences:
             shown = "; ".join(differences[:4]) + (f"; ... ({len(differences)} in all)" if len(differences) > 4 else "")
             return State.CONFLICT, f"{run} holds a run made with other settings: {shown}; {KEEP_ADVICE}"
