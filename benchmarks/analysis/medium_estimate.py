@@ -33,7 +33,7 @@ from uw3dgs.datamanagers.synthetic import SyntheticDataManagerConfig
 from uw3dgs.datamanagers.synthetic.config import SyntheticSceneConfig
 from uw3dgs.fields.medium import MediumGridConfig
 from uw3dgs.fields.medium_estimate import estimate_from_views, estimate_medium, open_water_color
-from uw3dgs.fields.medium_evidence import NOT_IDENTIFIED, VARYING, combine_by_evidence
+from uw3dgs.fields.medium_evidence import FAR_END, NOT_IDENTIFIED, VARYING, combine_by_evidence
 from uw3dgs.fields.medium_identifiability import assess_medium
 from uw3dgs.fields.medium_multiview import observe_and_estimate
 
@@ -77,7 +77,7 @@ def survey_row(name: str, options: dict) -> str:
             beta * factor(world.double()).float()[:, None] for beta in (beta_d, beta_b)))
     weak_single = ", ".join(f"{c.name} {c.channel}" for c in report.checks if not c.identifiable) or "-"
     weak_multi = ", ".join(f"{c.name} {c.channel}" for c in free.checks if not c.identified) or "-"
-    short = {NOT_IDENTIFIED: "NOT", VARYING: "field"}
+    short = {NOT_IDENTIFIED: "NOT", VARYING: "field", FAR_END: "far"}
     sources = "; ".join(f"{n}: " + "/".join(short.get(c.source, c.source.split()[0])
                                              for c in combined.checks if c.name == n)
                         for n in ("beta_D", "beta_B", "B_inf"))
