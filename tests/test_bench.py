@@ -269,7 +269,7 @@ def test_the_ray_executor_gives_the_table_of_the_local_one(killed_and_resumed, t
 
 @pytest.mark.parametrize("preset, cells", [
     ("demo", 2), ("paper-table1", 120), ("paper-ablation", 120), ("table1-iui3", 21), ("iui3-resolution", 6),
-    ("volumetric-synthetic", 3),
+    ("volumetric-iui3-lengths", 6), ("volumetric-synthetic", 3),
     *(pytest.param(name, cells, marks=pytest.mark.slow) for name, cells in (  # the grids behind docs/results.md
         ("iui3-redsea-x8", 9), ("synthetic-6k", 10), ("synthetic-15k-paup", 6), ("synthetic-marine-snow", 2),
         ("paup-enhanced-every", 9), ("paper-ablation-synthetic", 30), ("paper-ablation-iui3", 30)))])
