@@ -224,12 +224,19 @@ def _blurred(image: Tensor, sigma: float) -> Tensor:
     return out[:, 0].permute(1, 2, 0)
 
 
+def range_bounds(point: Tensor, z: Tensor, num_points: int) -> tuple[Tensor, Tensor]:
+    """Per point (ids `point` [M] in 0..num_points-1, ranges z [M] > 0): its nearest and farthest range [P], float64
+    (inf and 0 for a point never seen)."""
+    lo = torch.full((num_points,), math.inf, dtype=torch.float64).scatter_reduce(0, point, z.double(), "amin")
+    hi = torch.zeros(num_points, dtype=torch.float64).scatter_reduce(0, point, z.double(), "amax")
+    return lo, hi
+
+
 def point_spans(point: Tensor, z: Tensor, num_points: int) -> tuple[Tensor, Tensor]:
     """Per point (ids `point` [M] in 0..num_points-1, ranges z [M] > 0): (views [P], largest / smallest range [P];
     1 for a point seen once, 0 for one never seen)."""
     count = torch.bincount(point, minlength=num_points)
-    lo = torch.full((num_points,), math.inf, dtype=torch.float64).scatter_reduce(0, point, z.double(), "amin")
-    hi = torch.zeros(num_points, dtype=torch.float64).scatter_reduce(0, point, z.double(), "amax")
+    lo, hi = range_bounds(point, z, num_points)
     return count, torch.where(count > 0, hi / lo, torch.zeros_like(hi))
 
 
@@ -256,12 +263,17 @@ class MultiviewFit:
     """[3] the robust loss's scale used per channel (colour units)."""
     iterations: int
     """Levenberg-Marquardt iterations run."""
-    cost: Tensor | None = None
+    cost: Tensor
     """[3] the weighted robust cost at the fit per channel (float64, at `loss_scale`)."""
 
     @property
     def medium(self) -> tuple[Tensor, Tensor, Tensor]:
         return self.beta_d, self.beta_b, self.b_inf
+
+    @property
+    def matrix(self) -> Tensor:
+        """[3 parameters (beta_D, beta_B, B_inf), 3 channels] float64."""
+        return torch.stack([t.double() for t in self.medium])
 
 
 def _robust(r: Tensor, scale: Tensor, loss: str) -> tuple[Tensor, Tensor]:
@@ -457,8 +469,7 @@ def _subset(point: Tensor, num_points: int, max_observations: int, seed: int) ->
 def _deeper(a: MultiviewFit, b: MultiviewFit) -> Tensor:
     """[3 parameters, 3 channels] per channel the medium of whichever of two fits of the same data has the lower
     cost."""
-    pick = (b.cost < a.cost)[None]
-    return torch.where(pick, torch.stack([t.double() for t in b.medium]), torch.stack([t.double() for t in a.medium]))
+    return torch.where((b.cost < a.cost)[None], b.matrix, a.matrix)
 
 
 def _drift_sensitivity(point: Tensor, color: Tensor, z: Tensor, weight: Tensor, b_inf: Tensor | None,
@@ -468,20 +479,16 @@ def _drift_sensitivity(point: Tensor, color: Tensor, z: Tensor, weight: Tensor, 
     farthest view, centred), refitted from `whole` at its loss scale: the bias a surface colour that changes with
     range for reasons other than the water (texture blurring, shading, SfM noise) would put into each parameter."""
     point, z = point.long(), z.double()
-    num_points = int(point.max()) + 1
-    log_z = z.log()
-    lo = torch.full((num_points,), math.inf, dtype=torch.float64).scatter_reduce(0, point, log_z, "amin")[point]
-    hi = torch.full((num_points,), -math.inf, dtype=torch.float64).scatter_reduce(0, point, log_z, "amax")[point]
-    place = (log_z - lo) / (hi - lo).clamp_min(1e-12) - 0.5  # [-0.5, 0.5] across each point's span
+    lo, hi = (bound.log()[point] for bound in range_bounds(point, z, int(point.max()) + 1))
+    place = (z.log() - lo) / (hi - lo).clamp_min(1e-12) - 0.5  # [-0.5, 0.5] across each point's span
     direct = whole.clean[point] * torch.exp(-whole.beta_d.double()[None] * z[:, None])  # [M, 3]
-    values = torch.stack([t.double() for t in whole.medium])
-    moved = torch.zeros_like(values)
+    moved = torch.zeros(3, 3, dtype=torch.float64)
     for sign in (1.0, -1.0):
         drifted = color.double() + torch.expm1(sign * config.color_drift * place)[:, None] * direct
         refit = fit_multiview(point, drifted, z, weight, b_inf, config, start=whole.medium,
                               loss_scale=whole.loss_scale)
-        moved = torch.maximum(moved, (torch.stack([t.double() for t in refit.medium]) - values).abs())
-    return moved / values.abs().clamp_min(1e-9)
+        moved = torch.maximum(moved, (refit.matrix - whole.matrix).abs())
+    return moved / whole.matrix.abs().clamp_min(1e-9)
 
 
 def _spatial_disagreement(point: Tensor, color: Tensor, z: Tensor, weight: Tensor, positions: Tensor,
@@ -641,8 +648,7 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
     quantiles = tuple(float(q) for q in torch.quantile(fitted_ratio, torch.tensor([0.1, 0.5, 0.9],
                                                                                   dtype=torch.float64))) \
         if len(fitted_ratio) else (1.0, 1.0, 1.0)
-    lo_z = torch.full((len(ids),), math.inf, dtype=torch.float64).scatter_reduce(0, point, z.double(), "amin")
-    hi_z = torch.zeros(len(ids), dtype=torch.float64).scatter_reduce(0, point, z.double(), "amax")
+    lo_z, hi_z = range_bounds(point, z, len(ids))
     median_span = float((hi_z - lo_z)[enter].median()) if bool(enter.any()) else 0.0
     result = MultiviewEstimate(None, int(enter.sum()), span_points, quantiles, held, median_span)
     few = f"only {span_points} points span a range ratio >= {config.identify_span_ratio:g} " \
@@ -670,7 +676,7 @@ def multiview_estimate(point: Tensor, color: Tensor, z: Tensor, config: Multivie
         cold = fit_multiview(*resample, loss_scale=fit.loss_scale)
         warm = fit_multiview(*resample, start=fit.medium, loss_scale=fit.loss_scale)
         boot.append(_deeper(cold, warm))
-    values = torch.stack([t.double() for t in fit.medium])  # [3 params, 3 channels]
+    values = fit.matrix  # [3 params, 3 channels]
     if positions is not None:
         where = torch.zeros(int(sub_ids.max()) + 1, 3, dtype=torch.float64)
         where[sub_ids] = positions.double()[ids[point[rows]][sub]]

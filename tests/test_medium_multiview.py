@@ -144,6 +144,11 @@ def test_every_parameter_is_not_identified_when_every_point_is_seen_over_a_tiny_
     assert any("not identified" in line for line in estimate.lines())
 
 
+def test_a_median_span_ratio_under_one_is_refused_with_the_option_named():
+    with pytest.raises(OptionError, match="identify_median_span_ratio"):
+        MultiviewConfig(identify_median_span_ratio=0.5)
+
+
 def test_a_bootstrap_refit_keeps_per_channel_the_deeper_of_its_two_starts():
     """The fit reports its robust cost per channel (recomputed here from its medium and clean colours, Cauchy at its
     scale), and `_deeper` takes each channel's medium from the fit of lower cost: a grid start stopped in a shallower
