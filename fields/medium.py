@@ -147,18 +147,17 @@ class MediumGridConfig(MediumFieldConfig):
     init_std: float = 0.1
     """Standard deviation of the random VM factors: the planes and lines with flat_start 'zero-basis', the basis
     with 'constant-factors'."""
-    flat_start: FlatStart = "zero-basis"
-    """How the field is made flat (at beta_prior, then at the estimate). 'zero-basis' (the default, the paper's code):
-    random planes and lines and a zero basis, so the planes and lines get no gradient from the images, only from the
-    factor penalty, and with factor_penalty 'norm' they collapse to ~0 within a few hundred steps and the field stays
-    flat for good (docs/medium-recovery.md, "The varying medium"). 'constant-factors': planes and lines 1 everywhere,
-    a random basis, and the bias set so the field equals the start: every factor gets image gradients from step 1.
-    Use it with factor_penalty 'roughness' (the norm would pull the constant factors to 0, away from the start)."""
-    factor_penalty: FactorPenalty = "norm"
-    """The VM factors' term in L_beta, factor_penalty_weight x (of both fields): 'norm' (the default, the paper's) =
-    the squared norm of the planes and lines, which pulls them to 0; 'roughness' = the squared differences between
-    neighbouring cells of every plane and line, which is 0 for constant factors (a flat field) and penalises only
-    spatial variation."""
+    flat_start: FlatStart = "constant-factors"
+    """How the field is made flat (at beta_prior, then at the estimate). 'constant-factors' (the default): planes and
+    lines 1 everywhere, a random basis, and the bias set so the field equals the start: every factor gets image
+    gradients from step 1. 'zero-basis' (the paper's code, `uw3dgs-paper`): random planes and lines and a zero basis,
+    so the planes and lines get no gradient from the images, only from the factor penalty; with factor_penalty 'norm'
+    they collapse to ~0 within a few hundred steps and the field stays flat for good (docs/medium-varying.md)."""
+    factor_penalty: FactorPenalty = "roughness"
+    """The VM factors' term in L_beta, factor_penalty_weight x (of both fields): 'roughness' (the default) = the
+    squared differences between neighbouring cells of every plane and line, which is 0 for constant factors (a flat
+    field) and penalises only spatial variation; 'norm' (the paper's, `uw3dgs-paper`) = the squared norm of the
+    planes and lines, which pulls them to 0 (with 'constant-factors', away from the start)."""
     factor_penalty_weight: float = 0.001
     """Weight of the factor penalty inside L_beta (>= 0; L_beta itself is then scaled by beta_loss_weight). 0.001 is
     the paper's weight on the factor norm, also used for the roughness; 0 turns the penalty off
@@ -204,8 +203,7 @@ class VMField(nn.Module):
     W = 0; 'constant-factors' = planes and lines 1 (every feature is 1 everywhere), W random, b = softplus^-1(init) -
     W 1, so that W and the planes and lines all get gradients from the first step."""
 
-    def __init__(self, resolution: int, components: int, init: RGB, init_std: float,
-                 start: FlatStart = "zero-basis"):
+    def __init__(self, resolution: int, components: int, init: RGB, init_std: float, start: FlatStart):
         super().__init__()
         g, r = resolution, components
         self.start = start

@@ -65,7 +65,7 @@ def test_open_water_saturates_to_veiling_light():
 
 def test_vm_field_equals_trilinear_read_of_its_dense_grid():
     torch.manual_seed(0)
-    field = VMField(resolution=9, components=3, init=(0.1, 0.2, 0.3), init_std=1.0).double()
+    field = VMField(resolution=9, components=3, init=(0.1, 0.2, 0.3), init_std=1.0, start="zero-basis").double()
     x = torch.rand(200, 3, dtype=torch.float64) * 2 - 1
     dense = field.dense_features()  # [3R, X, Y, Z]
     # grid_sample 3D indexes (D, H, W) = (z, y, x) and takes grid coordinates as (x, y, z)
@@ -80,7 +80,7 @@ def test_vm_field_equals_trilinear_read_of_its_dense_grid():
 def test_vm_field_gradients_against_finite_differences():
     """Points (the ray samples depend on the rendered range) and every factor get exact gradients."""
     torch.manual_seed(0)
-    field = VMField(resolution=5, components=2, init=(0.1, 0.2, 0.3), init_std=1.0).double()
+    field = VMField(resolution=5, components=2, init=(0.1, 0.2, 0.3), init_std=1.0, start="zero-basis").double()
     torch.nn.init.normal_(field.basis)
     x = (torch.rand(6, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_()
     params = (field.planes, field.lines, field.basis, field.bias)
@@ -95,7 +95,7 @@ def test_vm_field_gradients_against_finite_differences():
 def kernel_case(dtype, components=16, points=3000, fields=2, seed=0):
     """Fields with non-flat bases and points inside, on the box's faces and clamped from outside it."""
     torch.manual_seed(seed)
-    vm = [VMField(resolution=7, components=components, init=(0.1, 0.2, 0.3), init_std=0.5).to(dtype)
+    vm = [VMField(resolution=7, components=components, init=(0.1, 0.2, 0.3), init_std=0.5, start="zero-basis").to(dtype)
           for _ in range(fields)]
     for field in vm:
         torch.nn.init.normal_(field.basis, std=0.5)
@@ -131,7 +131,7 @@ def test_compiled_vm_read_softplus_over_the_whole_range():
     """The float kernel's own softplus (no libm) against float64 softplus for pre-activations from -87 to 30 (the
     bias alone, the factors zero): within 3e-7 relative, x itself above PyTorch's threshold of 20."""
     pre = torch.linspace(-87.0, 30.0, 3000, dtype=torch.float64)
-    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0) for _ in range(pre.numel() // 3)]
+    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis") for _ in range(pre.numel() // 3)]
     for field, bias in zip(vm, pre.view(-1, 3), strict=True):
         with torch.no_grad():
             field.bias.copy_(bias)
@@ -144,7 +144,7 @@ def test_compiled_vm_read_softplus_derivative_over_the_whole_range():
     """The float kernel's backward takes softplus's derivative (sigmoid) from the forward's pre-activations with its
     own exp: d out / d bias against float64 sigmoid for pre-activations from -87 to 30, 1 above the threshold."""
     pre = torch.linspace(-87.0, 30.0, 3000, dtype=torch.float64)
-    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0) for _ in range(pre.numel() // 3)]
+    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis") for _ in range(pre.numel() // 3)]
     for field, bias in zip(vm, pre.view(-1, 3), strict=True):
         with torch.no_grad():
             field.bias.copy_(bias)
@@ -252,7 +252,7 @@ def test_constant_factors_start_flat_at_the_estimate(compiled):
 
 
 def test_factor_roughness_is_the_squared_neighbour_differences():
-    field = VMField(resolution=4, components=2, init=(0.1, 0.2, 0.3), init_std=1.0).double()
+    field = VMField(resolution=4, components=2, init=(0.1, 0.2, 0.3), init_std=1.0, start="zero-basis").double()
     planes, lines = field.planes.detach(), field.lines.detach()
     by_hand = sum(float((planes[m, r, i + 1, j] - planes[m, r, i, j]) ** 2) for m in range(3) for r in range(2)
                   for i in range(3) for j in range(4))

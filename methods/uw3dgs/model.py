@@ -580,6 +580,8 @@ PAPER_PAUP: dict[str, Any] = {"normalize_scores": False, "monotone_scorer": Fals
 
 paper = preset(method, "uw3dgs-paper", "UW-3DGS as the paper writes it: the medium from beta_prior, raw PUS, "
                "unconstrained phi, P with its attenuation term, the UWI from I_UR^Enh, pruning at the 0.95-quantile "
-               "of m every step.", medium=dataclasses.replace(method.config.model.medium, init="prior"),
+               "of m every step, the VM factors' norm in L_beta.",
+               medium=dataclasses.replace(method.config.model.medium, init="prior", flat_start="zero-basis",
+                                          factor_penalty="norm"),
                paup=dataclasses.replace(method.config.model.paup, **PAPER_PAUP))
 paper_no_paup, paper_no_medium, paper_no_lbeta, paper_no_lz = (ablation(paper, suffix) for suffix in ABLATIONS)
