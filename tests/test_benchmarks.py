@@ -327,6 +327,12 @@ def test_medium_recovery_prints_one_row_per_variant_and_reuses_its_runs(tmp_path
     # no correlation, and no amplitude against the plume's true spread
     assert spread[2][2] == spread[2][4] == "-/-/- ; 0.00/0.00/0.00"
     assert float(spread[2][-1]) > 0  # the UWI's PSNR
+    # the grid in homogeneous water: its spread over the seabed (std / mean, %) and whether it stays flat
+    (flat,) = [cells(r) for r in lines if r.count("|") == 6][2:]
+    trained = json.loads((tmp_path / "default" / "row.json").read_text())["trained"]["spread"]
+    ratios = [s / m for p in ("beta_D", "beta_B") for s, m in zip(trained[p]["std"], trained[p]["mean"], strict=True)]
+    assert flat[0] == "default" and float(flat[3]) == pytest.approx(100 * max(ratios), abs=0.05)
+    assert flat[4] == ("yes" if max(ratios) <= script.FLAT_BAR else "no (bar 5%)")
     # and the URI where the water leaves the seabed recoverable (the report's range), as well as on the whole image
     recoverable = [cells(r) for r in lines if r.count("|") == 8]
     assert [r[0] for r in recoverable[2:]] == ["default", "plume-homogeneous"]

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import tiny_train_config
+from conftest import as_uw3dgs, tiny_train_config
 
 from uw3dgs.cli.train import entrypoint, parse_config
 from uw3dgs.config import config_from_dict, config_to_dict
@@ -131,7 +131,8 @@ def test_compiled_vm_read_softplus_over_the_whole_range():
     """The float kernel's own softplus (no libm) against float64 softplus for pre-activations from -87 to 30 (the
     bias alone, the factors zero): within 3e-7 relative, x itself above PyTorch's threshold of 20."""
     pre = torch.linspace(-87.0, 30.0, 3000, dtype=torch.float64)
-    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis") for _ in range(pre.numel() // 3)]
+    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis")
+          for _ in range(pre.numel() // 3)]
     for field, bias in zip(vm, pre.view(-1, 3), strict=True):
         with torch.no_grad():
             field.bias.copy_(bias)
@@ -144,7 +145,8 @@ def test_compiled_vm_read_softplus_derivative_over_the_whole_range():
     """The float kernel's backward takes softplus's derivative (sigmoid) from the forward's pre-activations with its
     own exp: d out / d bias against float64 sigmoid for pre-activations from -87 to 30, 1 above the threshold."""
     pre = torch.linspace(-87.0, 30.0, 3000, dtype=torch.float64)
-    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis") for _ in range(pre.numel() // 3)]
+    vm = [VMField(resolution=3, components=2, init=(1.0, 1.0, 1.0), init_std=0.0, start="zero-basis")
+          for _ in range(pre.numel() // 3)]
     for field, bias in zip(vm, pre.view(-1, 3), strict=True):
         with torch.no_grad():
             field.bias.copy_(bias)
@@ -218,18 +220,23 @@ def test_field_starts_flat_at_the_prior():
 
 
 LIVE = {"flat_start": "constant-factors", "factor_penalty": "roughness"}
+"""The default start: factors that get image gradients from step 1, a penalty that is 0 for a flat field."""
+PAPER_START = {"flat_start": "zero-basis", "factor_penalty": "norm"}
+"""The paper's code (`uw3dgs-paper`): a zero basis, the factors' norm in L_beta."""
 
 
-def test_live_factor_options_are_listed_parse_and_round_trip(capsys):
+def test_factor_start_options_are_listed_parse_and_round_trip(capsys):
     with pytest.raises(SystemExit):
         entrypoint(["uw3dgs", "--help"])
     out = capsys.readouterr().out
     assert "--model.medium.flat-start" in out and "--model.medium.factor-penalty" in out
-    config = parse_config(["uw3dgs", "--model.medium.flat-start", "constant-factors",
-                           "--model.medium.factor-penalty", "roughness"])
-    assert config.model.medium == MediumGridConfig(**LIVE)
+    config = parse_config(["uw3dgs", "--model.medium.flat-start", "zero-basis",
+                           "--model.medium.factor-penalty", "norm"])
+    assert config.model.medium == MediumGridConfig(**PAPER_START)
     assert config_from_dict(config_to_dict(config)) == config
-    assert METHODS["uw3dgs"].config.model.medium == MediumGridConfig(flat_start="zero-basis", factor_penalty="norm")
+    assert METHODS["uw3dgs"].config.model.medium == MediumGridConfig(**LIVE) == MediumGridConfig()
+    paper = METHODS["uw3dgs-paper"].config.model.medium
+    assert (paper.flat_start, paper.factor_penalty) == ("zero-basis", "norm")
 
 
 @pytest.mark.parametrize("compiled", [True, False])
@@ -269,7 +276,9 @@ def test_factor_penalty_weight_scales_the_penalty(penalty):
     parsed from --model.medium.factor-penalty-weight, and a negative weight is refused."""
     assert MediumGridConfig().factor_penalty_weight == 0.001
     torch.manual_seed(0)
-    medium = MediumGrid(MediumGridConfig(factor_penalty=penalty), torch.zeros(3), torch.ones(3))
+    # random planes and lines (the zero basis), so that both penalties are nonzero
+    config = MediumGridConfig(factor_penalty=penalty, flat_start="zero-basis")
+    medium = MediumGrid(config, torch.zeros(3), torch.ones(3))
     fields = (medium.beta_d, medium.beta_b)
     raw = sum(f.factor_norm() if penalty == "norm" else f.factor_roughness() for f in fields).detach()
     assert float(raw) > 0
@@ -314,12 +323,13 @@ def factor_gradient(medium: MediumGrid, basis: torch.Tensor | None = None) -> fl
     return sum(float(f.grad.norm()) for field in (medium.beta_d, medium.beta_b) for f in (field.planes, field.lines))
 
 
-@pytest.mark.parametrize(("options", "alive"), [({}, False), (LIVE, True)])
+@pytest.mark.parametrize(("options", "alive"), [(PAPER_START, False), ({}, True)])
 def test_factors_stay_alive_under_l_beta_alone(options, alive):
-    """The collapse of docs/medium-recovery.md ("The varying medium"): started flat at the estimate, the default
+    """The collapse of docs/medium-recovery.md ("The varying medium"): started flat at the estimate, the paper's
     field's planes and lines get no image gradient (zero basis), and 1,000 Adam steps (the model's lr) on L_beta alone
     (its pull at the estimate and the factor norm) shrink them until even a nonzero basis could not make the images
-    reach them. Constant factors get image gradients from the start and keep them: L_beta is 0 at a flat start."""
+    reach them. The default's constant factors get image gradients from the start and keep them: L_beta is 0 at a
+    flat start."""
     torch.manual_seed(0)
     medium = MediumGrid(MediumGridConfig(resolution=16, components=4, **options), torch.zeros(3), torch.ones(3))
     estimate = torch.tensor([0.4, 0.2, 0.1])
@@ -337,16 +347,39 @@ def test_factors_stay_alive_under_l_beta_alone(options, alive):
     assert reach > 0.99 if alive else reach < 0.01
 
 
-def test_homogeneous_medium_is_fitted_and_stays_flat():
-    """Rays through water with one beta everywhere: the field must learn it without inventing structure."""
+@pytest.mark.parametrize(("name", "alive"), [("uw3dgs", True), ("uw3dgs-paper", False)])
+def test_the_default_grid_gets_image_gradients_on_its_factors_at_step_one(tmp_path, cache_dir, tiny_scene_config,
+                                                                          name, alive):
+    """A uw3dgs run as the method ships it, one step, L_beta off (so whatever reaches the planes and lines comes from
+    the images): every plane and line of both fields has a nonzero gradient; the paper's zero basis gives them none."""
+    base = tiny_train_config(tmp_path, cache_dir, tiny_scene_config, steps=1)
+    config = as_uw3dgs(base, name)
+    config = dataclasses.replace(config, model=dataclasses.replace(config.model, beta_loss_weight=0.0))
+    trainer = Trainer(config)
+    trainer.setup()
+    fields = (trainer.model.medium.beta_d, trainer.model.medium.beta_b)
+    seen: list[float] = []
+    for factor in (f for field in fields for f in (field.planes, field.lines)):
+        factor.register_hook(lambda grad: seen.append(float(grad.abs().sum())))
+    trainer.train()
+    assert len(seen) == 4 and all((g > 0) == alive for g in seen)
+
+
+@pytest.mark.parametrize("options", [{}, PAPER_START])
+def test_homogeneous_medium_is_fitted_and_stays_flat(options):
+    """Rays through water with one beta everywhere, from the prior: the field (either start, its own factor penalty)
+    must learn it without inventing structure. Bounds: the mean within 15% (the default's field is ~10% off in red
+    beta_B after these 1,000 steps, the zero basis 1%) and every channel's spread over the box (std / mean) under 5%
+    (the default's: 0.6-1.6%)."""
     torch.manual_seed(0)
-    medium = MediumGrid(MediumGridConfig(resolution=16, components=4), torch.zeros(3), torch.full((3,), 10.0))
+    medium = MediumGrid(MediumGridConfig(resolution=16, components=4, **options), torch.zeros(3),
+                        torch.full((3,), 10.0))
     # B_inf well above 0 in every channel: with a dark channel its beta_B would barely affect the image
     true_d, true_b = torch.tensor([0.4, 0.2, 0.12]), torch.tensor([0.3, 0.25, 0.2])
     true_binf = torch.tensor([0.25, 0.3, 0.35])
     params = [p for group in medium.param_groups().values() for p in group]
     opt = torch.optim.Adam(params, lr=0.02)
-    for _ in range(400):
+    for _ in range(1000):
         origin = torch.rand(3) * 10
         dirs = F.normalize(torch.randn(256, 3), dim=-1)
         ranges = 0.5 + 4 * torch.rand(256)
@@ -355,14 +388,14 @@ def test_homogeneous_medium_is_fitted_and_stays_flat():
         truth = radiance * torch.exp(-true_d * z) + true_binf * (1 - torch.exp(-true_b * z))
         beta_d, beta_b = medium.ray_betas(origin, dirs, ranges)
         pred = radiance * torch.exp(-beta_d * z) + medium.b_inf * (1 - torch.exp(-beta_b * z))
-        loss = (pred - truth).abs().mean() + 1e-4 * (medium.beta_d.factor_norm() + medium.beta_b.factor_norm())
+        loss = (pred - truth).abs().mean() + medium.factor_penalty()
         opt.zero_grad()
         loss.backward()
         opt.step()
     probe = torch.rand(2000, 3) * 10
     beta_d, beta_b = medium.betas(probe)
     for learned, truth in ((beta_d, true_d), (beta_b, true_b)):
-        assert (learned.mean(0) - truth).abs().max() < 0.1 * truth.max()
+        assert ((learned.mean(0) - truth).abs() / truth).max() < 0.15
         assert (learned.std(0) / learned.mean(0)).max() < 0.05  # flat: no spurious spatial variation
     torch.testing.assert_close(medium.b_inf.detach(), true_binf, atol=0.03, rtol=0)
 

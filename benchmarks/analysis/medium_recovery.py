@@ -54,8 +54,9 @@ from uw3dgs.fields.medium_varying import FactorField
 from uw3dgs.metrics.image import psnr
 from uw3dgs.registry import METHODS
 
-# the VM grid whose factors stay alive: a flat start through constant planes and lines, a roughness penalty
-LIVE = ["--model.medium.flat-start", "constant-factors", "--model.medium.factor-penalty", "roughness"]
+# the VM grid as the paper's code starts it (uw3dgs-paper's): a zero basis and the factors' norm in L_beta, which
+# collapses the factors (the default start keeps them alive: constant planes and lines, a roughness penalty)
+ZERO_BASIS = ["--model.medium.flat-start", "zero-basis", "--model.medium.factor-penalty", "norm"]
 # name -> (scene options, method options); scene options are SyntheticSceneConfig fields
 VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "default": ({}, []),
@@ -76,8 +77,8 @@ VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "turbid-bottom-homogeneous": ({"medium_profile": "turbid-bottom"}, ["medium-homogeneous"]),
     "plume-grid": ({"medium_profile": "plume"}, ["medium-grid"]),
     "plume-homogeneous": ({"medium_profile": "plume"}, ["medium-homogeneous"]),
-    "turbid-bottom-grid-live": ({"medium_profile": "turbid-bottom"}, ["medium-grid", *LIVE]),
-    "plume-grid-live": ({"medium_profile": "plume"}, ["medium-grid", *LIVE]),
+    "turbid-bottom-grid-zero-basis": ({"medium_profile": "turbid-bottom"}, ["medium-grid", *ZERO_BASIS]),
+    "plume-grid-zero-basis": ({"medium_profile": "plume"}, ["medium-grid", *ZERO_BASIS]),
 }
 # the survey variants (passes over the same seabed at one to three altitudes; also medium_estimate.py --survey):
 # name -> scene options (SyntheticSceneConfig fields)
@@ -108,11 +109,14 @@ def survey_name(survey: str) -> str:
 
 
 VARIANTS.update({survey_name(survey): (options, MULTIVIEW) for survey, options in SURVEYS.items()})
-VARIANTS.update({survey_name(survey) + "-live": (options, ["medium-grid", *LIVE, *MULTIVIEW])
+VARIANTS.update({survey_name(survey) + "-zero-basis": (options, ["medium-grid", *ZERO_BASIS, *MULTIVIEW])
                  for survey, options in SURVEYS.items()
                  if options.get("medium_profile", "homogeneous") != "homogeneous"})
 PARAMETERS = ("beta_D", "beta_B", "B_inf")
 BAR, GAIN_DB = 0.15, 6.0
+FLAT_BAR = 0.05
+"""Homogeneous water stays flat when the trained grid's spread over the seabed points (std / mean) is at most this in
+every beta and channel: a tenth of the survey gradient's (0.5, the truth's std / mean)."""
 
 
 def scene_flags(options: dict) -> list[str]:
@@ -142,9 +146,9 @@ def medium_errors(scene, scene_config: SyntheticSceneConfig, medium, world: torc
 
 
 def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str, dict[str, list[float | None]]]:
-    """Whether the learned field varies where the truth does: per beta and channel, its standard deviation over the
-    seabed points (per dataset unit) and its Pearson correlation with the true field there (None where either is
-    flat)."""
+    """Whether the learned field varies where the truth does: per beta and channel, its mean and standard deviation
+    over the seabed points (per dataset unit) and its Pearson correlation with the true field there (None where either
+    is flat)."""
     world = scene.points.detach().float().cpu()
     with torch.no_grad():
         learned = [b.double() for b in medium.betas(world)]
@@ -152,7 +156,7 @@ def field_spread(scene, scene_config: SyntheticSceneConfig, medium) -> dict[str,
     for name, value, truth in zip(("beta_D", "beta_B"), learned, true_betas(scene, scene_config, world), strict=True):
         spread = value.std(0, correction=0) * truth.std(0, correction=0)
         corr = ((value - value.mean(0)) * (truth - truth.mean(0))).mean(0) / spread
-        out[name] = {"std": value.std(0).tolist(), "truth_std": truth.std(0).tolist(),
+        out[name] = {"mean": value.mean(0).tolist(), "std": value.std(0).tolist(), "truth_std": truth.std(0).tolist(),
                      "corr": [float(c) if s > 0 else None for c, s in zip(corr, spread, strict=True)]}
     return out
 
@@ -368,6 +372,10 @@ def run_variant(name: str, steps: int, output_dir: Path, scene_overrides: dict, 
             row["recoverable"] = recoverable_psnr(model, datamanager, row["recoverable_range"])
             path.write_text(json.dumps(row, indent=1))
         spread = row["trained"].get("spread")
+        if spread and "mean" not in spread["beta_D"]:  # a row saved before the field's mean was kept
+            _, datamanager, model, _ = load_trained(sorted((output_dir / name).glob("**/config.yml"))[0])
+            spread = row["trained"]["spread"] = field_spread(datamanager.scene, scene_config, model.medium)
+            path.write_text(json.dumps(row, indent=1))
         if spread and "truth_std" not in spread["beta_D"]:  # a row saved before the true field's spread was kept
             data = SyntheticDataManagerConfig(scene=scene_config, **({"cache_dir": cache_dir} if cache_dir else {}))
             for beta, std in truth_spread(data.setup(data=None).scene, scene_config).items():
@@ -485,6 +493,30 @@ def spread_table(rows: list[dict]) -> list[str]:
     return lines
 
 
+def is_homogeneous_grid(row: dict) -> bool:
+    """A run of the VM grid (not `medium-homogeneous`) in water that is the same everywhere."""
+    options, flags = VARIANTS[row["name"]]
+    return options.get("medium_profile", "homogeneous") == "homogeneous" and "medium-homogeneous" not in flags
+
+
+def flat_table(rows: list[dict]) -> list[str]:
+    """The VM grid in homogeneous water: its trained spread over the seabed points (std / mean in %, R/G/B) per beta,
+    and whether it stays flat (every one at most FLAT_BAR); rows saved before the mean was kept are left out."""
+    rows = [row for row in rows if is_homogeneous_grid(row) and "mean" in row["trained"].get("spread", {}).get(
+        "beta_D", {})]
+    if not rows:
+        return []
+    lines = ["| variant | beta_D spread % (R/G/B) | beta_B spread % | largest % | flat |", "|---|---|---|---:|---|"]
+    for row in rows:
+        spread = row["trained"]["spread"]
+        ratios = {p: [s / m for s, m in zip(spread[p]["std"], spread[p]["mean"], strict=True)] for p in PARAMETERS[:2]}
+        largest = max(max(r) for r in ratios.values())
+        cells = " | ".join("/".join(f"{100 * r:.1f}" for r in ratios[p]) for p in PARAMETERS[:2])
+        flat = "yes" if largest <= FLAT_BAR else f"no (bar {100 * FLAT_BAR:.0f}%)"
+        lines.append(f"| {row_label(row)} | {cells} | {100 * largest:.1f} | {flat} |")
+    return lines
+
+
 def recoverable_table(rows: list[dict]) -> list[str]:
     """How much of the seabed the water leaves recoverable (the report's `recoverable_range`, before training) and
     the URI judged there as well as on the whole image: the input's and the URI's PSNR against the clean test
@@ -531,7 +563,7 @@ def main(argv: list[str] | None = None) -> None:
                               overrides, args.cache_dir, shlex.split(args.train_flags), args.estimate_again, seed)
             rows.append({**row, "label": f"{name} (seed {seed})"} if args.seeds else row)
     print("\n".join(table(rows) + [""] + recoverable_table(rows) + [""] + field_table(rows) + [""]
-                    + spread_table(rows)))
+                    + spread_table(rows) + [""] + flat_table(rows)))
 
 
 if __name__ == "__main__":
