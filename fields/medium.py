@@ -155,13 +155,15 @@ class MediumGridConfig(MediumFieldConfig):
     they collapse to ~0 within a few hundred steps and the field stays flat for good (docs/medium-varying.md)."""
     factor_penalty: FactorPenalty = "roughness"
     """The VM factors' term in L_beta, factor_penalty_weight x (of both fields): 'roughness' (the default) = the
-    squared differences between neighbouring cells of every plane and line, which is 0 for constant factors (a flat
-    field) and penalises only spatial variation; 'norm' (the paper's, `uw3dgs-paper`) = the squared norm of the
-    planes and lines, which pulls them to 0 (with 'constant-factors', away from the start)."""
-    factor_penalty_weight: float = 0.001
-    """Weight of the factor penalty inside L_beta (>= 0; L_beta itself is then scaled by beta_loss_weight). 0.001 is
-    the paper's weight on the factor norm, also used for the roughness; 0 turns the penalty off
-    (docs/medium-varying.md, "The roughness weight")."""
+    squared differences between neighbouring cells of every plane and line's change from the start (flat, or the
+    multi-view field fit's): 0 at the start, it penalises only the spatial variation training adds; 'norm' (the
+    paper's, `uw3dgs-paper`) = the squared norm of the planes and lines, which pulls them to 0 (with
+    'constant-factors', away from the start)."""
+    factor_penalty_weight: float = 0.1
+    """Weight of the factor penalty inside L_beta (>= 0; L_beta itself is then scaled by beta_loss_weight). 0.1 for
+    the roughness: chosen on the survey variants, where 0.001 (the paper's weight on the factor norm) let homogeneous
+    water vary by up to 4% and cost its URI 2.3 dB, and 0.1 keeps it within 1% (docs/medium-varying.md, "The
+    roughness weight"); `uw3dgs-paper` uses 0.001 with the norm. 0 turns the penalty off."""
     ray_samples: int = 1
     """S: points along each ray averaged for a pixel's beta (1 = the paper's single query)."""
     box_padding: float = 0.1
@@ -216,6 +218,9 @@ class VMField(nn.Module):
             self.lines = nn.Parameter(torch.ones(3, r, g))
             self.basis = nn.Parameter(init_std * torch.randn(3, 3 * r))
         self.bias = nn.Parameter(torch.empty(3))
+        # the planes and lines the roughness penalty measures change from: the start (flat, or the field fit's)
+        self.register_buffer("planes_start", torch.zeros_like(self.planes))
+        self.register_buffer("lines_start", torch.zeros_like(self.lines))
         self.make_flat(torch.tensor(init, dtype=torch.float32))
 
     @torch.no_grad()
@@ -225,10 +230,17 @@ class VMField(nn.Module):
         if self.start == "zero-basis":
             self.basis.zero_()  # the VM factors add nothing, so the bias alone sets the value
             self.bias.copy_(softplus_inverse(value.to(self.bias)))
-            return
-        self.planes.fill_(1.0)
-        self.lines.fill_(1.0)
-        self.bias.copy_(softplus_inverse(value.to(self.bias)) - self.basis.sum(dim=1))
+        else:
+            self.planes.fill_(1.0)
+            self.lines.fill_(1.0)
+            self.bias.copy_(softplus_inverse(value.to(self.bias)) - self.basis.sum(dim=1))
+        self.hold_start()
+
+    @torch.no_grad()
+    def hold_start(self) -> None:
+        """Take the present planes and lines as the start the roughness penalty measures change from."""
+        self.planes_start.copy_(self.planes)
+        self.lines_start.copy_(self.lines)
 
     def features(self, x: Tensor) -> Tensor:
         """[N, 3] points in [-1, 1] -> [3R, N] products of plane (bilinear) and line (linear) reads.
@@ -269,9 +281,11 @@ class VMField(nn.Module):
         return self.planes.square().sum() + self.lines.square().sum()
 
     def factor_roughness(self) -> Tensor:
-        """Sum of squared differences between neighbouring cells of the planes (along both axes) and lines (scalar):
-        0 exactly when every plane and line is constant, which makes the field flat."""
-        planes, lines = self.planes, self.lines  # [3, R, G, G], [3, R, G]
+        """Sum of squared differences between neighbouring cells of the planes (along both axes) and lines (scalar),
+        of their change from the start (`hold_start`): 0 at the start, and where they differ from it by a constant.
+        From a flat start that is the roughness of the field's factors; from the field fit's start, training's
+        additions to it are penalised, not the variation the fit found."""
+        planes, lines = self.planes - self.planes_start, self.lines - self.lines_start  # [3, R, G, G], [3, R, G]
         return (planes.diff(dim=-1).square().sum() + planes.diff(dim=-2).square().sum()
                 + lines.diff(dim=-1).square().sum())
 
@@ -429,6 +443,7 @@ class MediumGrid(MediumField):
                 optimizer.step()
             for p, flag in zip(field_.parameters(), learned, strict=True):
                 p.requires_grad_(flag)
+            field_.hold_start()
 
     def normalize(self, x: Tensor) -> Tensor:
         """World points [N, 3] -> [-1, 1]^3 box coordinates (clamped: outside the box reads its border)."""

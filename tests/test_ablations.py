@@ -22,6 +22,7 @@ ABLATION_FIELDS = {
 """Table 2's rows: what removing one part changes (no-lz: the paper's "unweighted depth computation" too)."""
 
 PAPER_FIELDS = {"model.medium.init", "model.medium.flat_start", "model.medium.factor_penalty",
+                "model.medium.factor_penalty_weight",
                 "model.paup.normalize_scores", "model.paup.monotone_scorer",
                 "model.paup.attenuation_weight", "model.paup.uwi_from_enhanced", "model.paup.prune_schedule",
                 "model.paup.prune_min_probability"}
@@ -73,7 +74,8 @@ def test_the_paper_preset_differs_from_uw3dgs_in_the_paper_knobs_only():
     paper, ours = METHODS["uw3dgs-paper"].config, METHODS["uw3dgs"].config
     assert differing_fields(ours, paper) == PAPER_FIELDS
     assert paper.model.medium.init == "prior" and paper.model.medium.beta_prior == (0.1, 0.15, 0.2)
-    assert (paper.model.medium.flat_start, paper.model.medium.factor_penalty) == ("zero-basis", "norm")
+    medium = paper.model.medium
+    assert (medium.flat_start, medium.factor_penalty, medium.factor_penalty_weight) == ("zero-basis", "norm", 0.001)
     p = paper.model.paup
     assert (p.prune_schedule, p.prune_every, p.prune_quantile, p.prune_min_probability) == ("every", 1, 0.95, 0.0)
     assert (p.normalize_scores, p.monotone_scorer, p.attenuation_weight, p.uwi_from_enhanced) == \

@@ -258,9 +258,14 @@ def test_constant_factors_start_flat_at_the_estimate(compiled):
     assert float(medium.factor_penalty().detach()) == 0.0
 
 
-def test_factor_roughness_is_the_squared_neighbour_differences():
+def test_factor_roughness_is_the_squared_neighbour_differences_of_the_change_from_the_start():
     field = VMField(resolution=4, components=2, init=(0.1, 0.2, 0.3), init_std=1.0, start="zero-basis").double()
-    planes, lines = field.planes.detach(), field.lines.detach()
+    assert float(field.factor_roughness().detach()) == 0.0  # the (random) start itself is not penalised
+    with torch.no_grad():
+        field.planes.add_(torch.randn_like(field.planes))
+        field.lines.add_(torch.randn_like(field.lines))
+    planes, lines = field.planes.detach() - field.planes_start, field.lines.detach() - field.lines_start
+    assert float(planes.abs().min()) > 0 and float(field.planes_start.abs().min()) > 0
     by_hand = sum(float((planes[m, r, i + 1, j] - planes[m, r, i, j]) ** 2) for m in range(3) for r in range(2)
                   for i in range(3) for j in range(4))
     by_hand += sum(float((planes[m, r, i, j + 1] - planes[m, r, i, j]) ** 2) for m in range(3) for r in range(2)
@@ -272,17 +277,21 @@ def test_factor_roughness_is_the_squared_neighbour_differences():
 
 @pytest.mark.parametrize("penalty", ["norm", "roughness"])
 def test_factor_penalty_weight_scales_the_penalty(penalty):
-    """factor_penalty_weight multiplies both fields' factor norm or roughness; 0.001 (the paper's) is the default,
-    parsed from --model.medium.factor-penalty-weight, and a negative weight is refused."""
-    assert MediumGridConfig().factor_penalty_weight == 0.001
+    """factor_penalty_weight multiplies both fields' factor norm or roughness; 0.1 is the default (the paper's 0.001
+    is uw3dgs-paper's), parsed from --model.medium.factor-penalty-weight, and a negative weight is refused."""
+    assert MediumGridConfig().factor_penalty_weight == 0.1
     torch.manual_seed(0)
     # random planes and lines (the zero basis), so that both penalties are nonzero
     config = MediumGridConfig(factor_penalty=penalty, flat_start="zero-basis")
     medium = MediumGrid(config, torch.zeros(3), torch.ones(3))
+    with torch.no_grad():  # the roughness is measured from the start: move the planes and lines away from it
+        for field in (medium.beta_d, medium.beta_b):
+            field.planes.add_(torch.randn_like(field.planes))
+            field.lines.add_(torch.randn_like(field.lines))
     fields = (medium.beta_d, medium.beta_b)
     raw = sum(f.factor_norm() if penalty == "norm" else f.factor_roughness() for f in fields).detach()
     assert float(raw) > 0
-    assert torch.equal(medium.factor_penalty().detach(), 0.001 * raw)  # the default: bitwise the term before the knob
+    assert torch.equal(medium.factor_penalty().detach(), 0.1 * raw)  # the default
     for weight in (0.0, 0.1):
         medium.config = dataclasses.replace(medium.config, factor_penalty_weight=weight)
         assert float(medium.factor_penalty().detach()) == pytest.approx(weight * float(raw), rel=1e-6)

@@ -220,11 +220,16 @@ class UW3DGSModel(GaussianSplattingModel):
 
     def checkpoint_defaults(self) -> dict[str, Tensor]:
         """A checkpoint from before the water verdict has no 'water_free': it rendered with its medium; one from
-        before the varying start has a grid medium with no 'prior_factor': its L_beta targets were flat."""
+        before the varying start has a grid medium with no 'prior_factor': its L_beta targets were flat; one from
+        before the roughness was measured from the start has no 'planes_start', 'lines_start': it measured from 0."""
         defaults = {"water_free": torch.tensor(False)}
         if isinstance(self.medium, MediumGrid):
             defaults["medium.prior_factor"] = torch.ones_like(self.medium.prior_factor)
             defaults["medium.prior_varies"] = torch.tensor(False)
+            for field in ("beta_d", "beta_b"):
+                for factor in ("planes", "lines"):
+                    start = getattr(getattr(self.medium, field), f"{factor}_start")
+                    defaults[f"medium.{field}.{factor}_start"] = torch.zeros_like(start)
         return defaults
 
     @property
@@ -582,6 +587,6 @@ paper = preset(method, "uw3dgs-paper", "UW-3DGS as the paper writes it: the medi
                "unconstrained phi, P with its attenuation term, the UWI from I_UR^Enh, pruning at the 0.95-quantile "
                "of m every step, the VM factors' norm in L_beta.",
                medium=dataclasses.replace(method.config.model.medium, init="prior", flat_start="zero-basis",
-                                          factor_penalty="norm"),
+                                          factor_penalty="norm", factor_penalty_weight=0.001),
                paup=dataclasses.replace(method.config.model.paup, **PAPER_PAUP))
 paper_no_paup, paper_no_medium, paper_no_lbeta, paper_no_lz = (ablation(paper, suffix) for suffix in ABLATIONS)
