@@ -332,3 +332,25 @@ def test_options_added_since_a_run_was_saved_take_their_defaults_and_are_no_conf
     assert config_differences(as_loaded(old_run), other) == \
         ["model.medium.multiview.field_nodes (7 in the run, 5 in the grid)"]
     assert as_loaded({"_type": "no.such.Config"}) == {"_type": "no.such.Config"}  # compared as written
+
+
+def test_a_run_saved_before_an_option_whose_default_changed_keeps_what_it_ran_with():
+    """The VM grid's start and penalty options (EARLIER_DEFAULTS): a run written before they existed ran with the zero
+    basis and the factor norm at 0.001, and is read so (not with today's defaults); one that wrote them keeps them."""
+    import copy
+
+    from uw3dgs.bench.cell import as_loaded
+    from uw3dgs.cli.train import parse_config
+    from uw3dgs.config import config_from_dict, config_to_dict
+
+    today = config_to_dict(parse_config(["uw3dgs", "--max-num-iterations", "20"]))
+    old_run = copy.deepcopy(today)
+    for option in ("flat_start", "factor_penalty", "factor_penalty_weight"):
+        del old_run["model"]["medium"][option]
+    medium = config_from_dict(old_run).model.medium
+    assert (medium.flat_start, medium.factor_penalty, medium.factor_penalty_weight) == ("zero-basis", "norm", 0.001)
+    assert config_differences(as_loaded(old_run), today) == [
+        "model.medium.flat_start ('zero-basis' in the run, 'constant-factors' in the grid)",
+        "model.medium.factor_penalty ('norm' in the run, 'roughness' in the grid)",
+        "model.medium.factor_penalty_weight (0.001 in the run, 0.1 in the grid)"]
+    assert config_from_dict(today).model.medium == parse_config(["uw3dgs"]).model.medium

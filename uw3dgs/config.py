@@ -117,6 +117,13 @@ REMOVED_OPTIONS = frozenset({"gaussian_field", "medium_field", "radiance_field"}
 """Options that were removed because another key says the same (a field's registry name is its config's `_type`
 now that fields are chosen by subcommand): skipped when a config file written before is read."""
 
+EARLIER_DEFAULTS: dict[str, dict[str, Any]] = {
+    "uw3dgs.fields.medium.MediumGridConfig": {"flat_start": "zero-basis", "factor_penalty": "norm",
+                                              "factor_penalty_weight": 0.001},
+}
+"""Options whose default changed, per config class: the value a config file written without the option (before it
+existed) ran with, which it keeps when read (instead of the new default)."""
+
 
 def _import_config_class(qualname: Any, key: str = "") -> type:
     if not isinstance(qualname, str) or "." not in qualname:
@@ -273,6 +280,7 @@ def config_from_dict(data: dict[str, Any], key: str = "") -> Any:
     hints = typing.get_type_hints(cls, include_extras=True)
     names = {f.name for f in dataclasses.fields(cls) if f.init and f.name != "_target"}
     data = {k: v for k, v in data.items() if k in names or k not in REMOVED_OPTIONS}
+    data = {**EARLIER_DEFAULTS.get(f"{cls.__module__}.{cls.__qualname__}", {}), **data}
     unknown = set(data) - names - {"_type"}
     if unknown:
         raise ValueError(f"{_where(key)}{cls.__name__} has no option(s) {sorted(unknown)}")
