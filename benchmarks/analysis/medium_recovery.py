@@ -24,7 +24,7 @@ the seabed recoverable (`recoverable_psnr`: within the report's recoverable rang
 three field errors and how the trained field varies (its spread and its correlation with the truth at the seabed
 points). Each variant's numbers are kept in OUTPUT_DIR/VARIANT/row.json. `--scene KEY=VALUE` sets a scene option
 for every variant (the test: tiny images); `--train-flags` adds uw-train method options to every variant's
-(diagnostics).
+(diagnostics), `--grid-flags` the VM grid's options to the variants that train the grid.
 """
 
 from __future__ import annotations
@@ -56,7 +56,8 @@ from uw3dgs.registry import METHODS
 
 # the VM grid as the paper's code starts it (uw3dgs-paper's): a zero basis and the factors' norm in L_beta, which
 # collapses the factors (the default start keeps them alive: constant planes and lines, a roughness penalty)
-ZERO_BASIS = ["--model.medium.flat-start", "zero-basis", "--model.medium.factor-penalty", "norm"]
+ZERO_BASIS = ["--model.medium.flat-start", "zero-basis", "--model.medium.factor-penalty", "norm",
+              "--model.medium.factor-penalty-weight", "0.001"]
 # name -> (scene options, method options); scene options are SyntheticSceneConfig fields
 VARIANTS: dict[str, tuple[dict, list[str]]] = {
     "default": ({}, []),
@@ -547,6 +548,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--estimate-again", action="store_true",
                         help="make every estimate and report again; saved runs whose estimate is unchanged are kept, "
                              "the others set aside (OUTPUT_DIR/VARIANT.before/) and trained again")
+    parser.add_argument("--grid-flags", default="", metavar="'FLAGS'",
+                        help="uw-train options of the VM grid (--model.medium.*) added to the variants that train it, "
+                             "not to the medium-homogeneous ones, one quoted string (e.g. the paper's start: "
+                             "--grid-flags='--model.medium.flat-start zero-basis --model.medium.factor-penalty norm "
+                             "--model.medium.factor-penalty-weight 0.001')")
     parser.add_argument("--train-flags", default="", metavar="'FLAGS'",
                         help="uw-train method options added to every variant's, one quoted string (a diagnostic, e.g. "
                              "--train-flags='--optimizers.medium-beta.lr 0.01'; give it its own --output-dir)")
@@ -559,8 +565,10 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for seed in args.seeds or [0]:
         for name in args.variants:
+            grid = [] if "medium-homogeneous" in VARIANTS[name][1] else shlex.split(args.grid_flags)
             row = run_variant(name, args.steps, args.output_dir / f"s{seed}" if args.seeds else args.output_dir,
-                              overrides, args.cache_dir, shlex.split(args.train_flags), args.estimate_again, seed)
+                              overrides, args.cache_dir, [*grid, *shlex.split(args.train_flags)], args.estimate_again,
+                              seed)
             rows.append({**row, "label": f"{name} (seed {seed})"} if args.seeds else row)
     print("\n".join(table(rows) + [""] + recoverable_table(rows) + [""] + field_table(rows) + [""]
                     + spread_table(rows) + [""] + flat_table(rows)))
