@@ -420,10 +420,12 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     The scene's views show open water (B_inf on its own) and near-black patches (backscatter alone), which
     is what makes the medium identifiable (docs/results.md, "The built-in synthetic scene": the full-size
     scene gets every parameter within 12%). Tolerances, for 12 training views of 64x48 px and 400 steps,
-    from seeds 0-2 of this scene: B_inf within 4.8% (bound 10%), beta_D within 2.9% (bound 10%), beta_B
-    within 13.3% (bound 20%; red is the worst: the dark patches' albedo 0.03 reads as a little extra
-    backscatter); and the water-free render must be far closer to the clean ground truth than the
-    underwater input is (20.8-21.7 dB against 11.8-12.2 dB).
+    from seeds 0-2 of this scene with the default grid: B_inf within 8.8% (bound 12%), beta_D within 10.0%
+    (bound 15%, the issue's bar), beta_B within 14.5% (bound 20%; red is the worst: the dark patches' albedo 0.03
+    reads as a little extra backscatter); and the water-free render must be far closer to the clean ground truth
+    than the underwater input is (21.2-21.9 dB against 11.8). The zero basis (before the default grid) kept B_inf
+    within 4.8% and beta_D within 2.9%: the default's live factors move the medium's level faster
+    (docs/medium-varying.md, "Known limits").
     """
     scene = SyntheticSceneConfig(width=64, height=48, num_views=16)
     base = tiny_train_config(tmp_path, cache_dir, scene, steps=400)
@@ -440,7 +442,7 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
     truth = trainer.datamanager.scene.gt.medium
     learned = trainer.model.medium_summary()
     true_d, true_b, true_inf = (torch.tensor(truth[k]) for k in ("beta_D", "beta_B", "B_inf"))
-    for name, truth_, bound in (("b_inf", true_inf, 0.10), ("beta_d", true_d, 0.10), ("beta_b", true_b, 0.20)):
+    for name, truth_, bound in (("b_inf", true_inf, 0.12), ("beta_d", true_d, 0.15), ("beta_b", true_b, 0.20)):
         assert ((learned[name] - truth_).abs() / truth_).max() < bound, (name, learned[name], truth_)
 
     uri, underwater = [], []
