@@ -158,3 +158,17 @@ def test_image_grid_layout():
     assert image_grid(tiles).shape == (4, 3 * 5 + 2 * SEPARATOR_PX, 3)
     with pytest.raises(ValueError, match="one size"):
         image_grid([torch.zeros(4, 5, 3), torch.zeros(4, 6, 3)])
+
+
+def test_a_labelled_row_is_written_as_drawn(tmp_path):
+    """`labelled_row` returns uint8 pixels; `write_image` keeps them (read as [0, 1] floats they clipped to white, and
+    every `compare` image of uw-eval was white but its zeros)."""
+    from uw3dgs.utils.video import labelled_row
+
+    g = torch.Generator().manual_seed(0)
+    tiles = [torch.rand(12, 10, 3, generator=g) for _ in range(2)]
+    frame = labelled_row(tiles, ["photo", "UWI"])
+    write_image(tmp_path / "compare.png", frame)
+    written = np.asarray(Image.open(tmp_path / "compare.png"))
+    np.testing.assert_array_equal(written, frame)
+    np.testing.assert_array_equal(written[-12:, :10], to_uint8(tiles[0]))  # the first tile's pixels, under the label

@@ -70,7 +70,8 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
 
 
 def write_image(path: str | os.PathLike, img: ArrayLike) -> None:
-    """Write a float [H, W, 3] image in [0, 1] as an 8-bit PNG, atomically.
+    """Write a float [H, W, 3] image in [0, 1] (or a uint8 one, as `labelled_row` makes, as it is) as an 8-bit PNG,
+    atomically.
 
     The PNG goes to a temporary file in the target folder and is renamed over `path`, so an
     interrupted run never leaves a truncated image that a later evaluation would trip over.
@@ -78,7 +79,8 @@ def write_image(path: str | os.PathLike, img: ArrayLike) -> None:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"write_image writes PNG files only, got {path}")
-    pixels = to_uint8(img)
+    # a uint8 image is already 8-bit: read as [0, 1] floats it would clip to white
+    pixels = img if isinstance(img, np.ndarray) and img.dtype == np.uint8 else to_uint8(img)
     if pixels.ndim != 3 or pixels.shape[-1] != 3:
         raise ValueError(f"write_image expects an [H, W, 3] image, got shape {pixels.shape}")
     with atomic_file(path, "wb", fsync=True) as f:
