@@ -453,3 +453,16 @@ def test_training_recovers_the_medium(tmp_path, cache_dir):
             uri.append(psnr(outputs["uri"].clamp(0, 1), batch["clean_image"]))
             underwater.append(psnr(batch["image"], batch["clean_image"]))
     assert sum(uri) / len(uri) > sum(underwater) / len(underwater) + 7.0
+
+
+def test_a_checkpoint_from_before_the_start_buffers_loads_with_the_roughness_measured_from_zero(tiny_uw3dgs_trainer):
+    """Checkpoints written before `planes_start`/`lines_start` existed measured the roughness from 0: they load with
+    those buffers at 0 (checkpoint_defaults), not refused as missing keys."""
+    model = tiny_uw3dgs_trainer.model
+    full = {k: v.clone() for k, v in model.state_dict().items()}
+    try:
+        model.load_checkpoint_state({k: v for k, v in full.items() if not k.endswith(("planes_start", "lines_start"))})
+        for field in (model.medium.beta_d, model.medium.beta_b):
+            assert float(field.planes_start.abs().sum()) == 0.0 and float(field.lines_start.abs().sum()) == 0.0
+    finally:
+        model.load_checkpoint_state(full)

@@ -226,10 +226,8 @@ class UW3DGSModel(GaussianSplattingModel):
         if isinstance(self.medium, MediumGrid):
             defaults["medium.prior_factor"] = torch.ones_like(self.medium.prior_factor)
             defaults["medium.prior_varies"] = torch.tensor(False)
-            for field in ("beta_d", "beta_b"):
-                for factor in ("planes", "lines"):
-                    start = getattr(getattr(self.medium, field), f"{factor}_start")
-                    defaults[f"medium.{field}.{factor}_start"] = torch.zeros_like(start)
+            defaults.update({f"medium.{key}": torch.zeros_like(value) for key, value in self.medium.state_dict().items()
+                             if key.endswith(("planes_start", "lines_start"))})
         return defaults
 
     @property

@@ -79,8 +79,7 @@ def write_image(path: str | os.PathLike, img: ArrayLike) -> None:
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ValueError(f"write_image writes PNG files only, got {path}")
-    # a uint8 image is already 8-bit: read as [0, 1] floats it would clip to white
-    pixels = img if isinstance(img, np.ndarray) and img.dtype == np.uint8 else to_uint8(img)
+    pixels = to_uint8(img)
     if pixels.ndim != 3 or pixels.shape[-1] != 3:
         raise ValueError(f"write_image expects an [H, W, 3] image, got shape {pixels.shape}")
     with atomic_file(path, "wb", fsync=True) as f:

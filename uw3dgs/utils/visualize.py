@@ -88,7 +88,10 @@ def depth_to_image(depth: ArrayLike, alpha: ArrayLike | None = None) -> Tensor:
 
 
 def to_uint8(img: ArrayLike) -> np.ndarray:
-    """Float image in [0, 1] -> uint8 numpy array for saving; out-of-range values clip, NaN -> 0."""
+    """Float image in [0, 1] -> uint8 numpy array for saving; out-of-range values clip, NaN -> 0. A uint8 numpy image
+    (already 8-bit, as `labelled_row` makes) is returned as it is: read as [0, 1] floats it would clip to white."""
+    if isinstance(img, np.ndarray) and img.dtype == np.uint8:
+        return img
     arr = img.detach().float().cpu().numpy() if isinstance(img, Tensor) else np.asarray(img, dtype=np.float32)
     return np.rint(np.nan_to_num(arr, nan=0.0).clip(0.0, 1.0) * 255.0).astype(np.uint8)
 
